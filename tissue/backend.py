@@ -1,0 +1,84 @@
+"""The single place Taichi is initialised: arch and precision, chosen once per process.
+
+Nothing initialises Taichi at import time. `init()` reads its arguments, else the environment
+(`TISSUE_ARCH` = auto|cpu|cuda|vulkan, `TISSUE_PRECISION` = f64|f32), else the defaults
+(auto arch = CUDA when present, else CPU; float64).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import taichi as ti
+
+from .errors import TissueError
+
+ARCHS = ("auto", "cpu", "cuda", "vulkan")
+PRECISIONS = ("f64", "f32")
+
+
+@dataclass(frozen=True)
+class Backend:
+    arch: str        # the arch Taichi actually runs on: cpu, cuda or vulkan
+    precision: str   # f64 or f32
+
+    @property
+    def real(self):
+        """The Taichi float type of every simulation field."""
+        return ti.f64 if self.precision == "f64" else ti.f32
+
+
+_current: Backend | None = None
+
+
+def _resolve_arch(name: str):
+    if name == "auto":
+        try:
+            ti.init(arch=ti.cuda, offline_cache=True, log_level=ti.ERROR)
+            ok = ti.lang.impl.current_cfg().arch == ti.cuda
+        finally:
+            ti.reset()
+        return ti.cuda if ok else ti.cpu
+    return {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan}[name]
+
+
+def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Backend:
+    """Initialise Taichi (or keep the current initialisation if it already matches).
+
+    Asking for a different arch or precision resets Taichi: every field made before is gone.
+    """
+    global _current
+    arch = (arch or os.environ.get("TISSUE_ARCH") or "auto").lower()
+    precision = (precision or os.environ.get("TISSUE_PRECISION") or "f64").lower()
+    if arch not in ARCHS:
+        raise TissueError(f"arch: unknown value {arch!r}; expected one of {', '.join(ARCHS)}")
+    if precision not in PRECISIONS:
+        raise TissueError(f"precision: unknown value {precision!r}; expected f64 or f32")
+    if _current is not None and precision == _current.precision and arch in ("auto", _current.arch):
+        return _current
+    if _current is not None:
+        ti.reset()
+    wanted = _resolve_arch(arch)
+    fp = ti.f64 if precision == "f64" else ti.f32
+    ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
+            log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
+    got = ti.lang.impl.current_cfg().arch
+    if got != wanted:
+        ti.reset()
+        _current = None
+        raise TissueError(f"arch: {arch!r} is not available on this machine (Taichi fell back to {got.name})")
+    _current = Backend(arch=got.name if got.name != "x64" else "cpu", precision=precision)
+    if _current.arch == "arm64":
+        _current = Backend(arch="cpu", precision=precision)
+    return _current
+
+
+def current() -> Backend:
+    """The active backend, initialising with the defaults if nothing has yet."""
+    return _current if _current is not None else init()
+
+
+def sync() -> None:
+    """Wait for the device: call before reading a clock."""
+    ti.sync()
