@@ -1,0 +1,320 @@
+"""The frictional contact solver against independent references: LCP by enumeration and by a QP,
+hand-derived single-contact and block-on-a-plane solutions, and the natural-map residual of random
+problems recomputed here (not with the module's own residual)."""
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+import scipy.optimize
+import scipy.sparse as sp
+
+from tissue.errors import TissueError
+
+# ----------------------------------------------------------------------------------------------
+# independent helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def natural_map(W, q, mu, r):
+    """||r - P_K(r - û)|| / (1 + ||q||), û = (u_n + mu |u_t|, u_t), written contact by contact."""
+    u = W @ r + q
+    n = len(q) // 3
+    mu = np.broadcast_to(mu, (n,))
+    err = 0.0
+    for i in range(n):
+        ri, ui, m = r[3 * i:3 * i + 3], u[3 * i:3 * i + 3], mu[i]
+        x = ri - ui - np.array([m * np.hypot(ui[1], ui[2]), 0.0, 0.0])
+        nt = np.hypot(x[1], x[2])
+        if nt <= m * x[0]:
+            p = x                                        # inside the cone
+        elif m * nt <= -x[0]:
+            p = np.zeros(3)                              # inside the polar cone
+        else:
+            a = (x[0] + m * nt) / (1 + m * m)
+            p = np.array([a, m * a * x[1] / nt, m * a * x[2] / nt])
+        err += np.sum((ri - p) ** 2)
+    return np.sqrt(err) / (1 + np.linalg.norm(q))
+
+
+def frame(normal):
+    nrm = normal / np.linalg.norm(normal)
+    a = np.array([1.0, 0, 0]) if abs(nrm[0]) < 0.9 else np.array([0, 1.0, 0])
+    t1 = np.cross(nrm, a)
+    t1 /= np.linalg.norm(t1)
+    return np.stack([nrm, t1, np.cross(nrm, t1)])
+
+
+def skew(p):
+    return np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+
+
+def random_delassus(n, rng):
+    """W = J M^-1 J^T with a random full-rank J (more dofs than constraints) and a random SPD M."""
+    d = 3 * n + 3
+    J = rng.standard_normal((3 * n, d))
+    B = rng.standard_normal((d, d))
+    M = B @ B.T + d * np.eye(d)
+    W = J @ np.linalg.solve(M, J.T)
+    return 0.5 * (W + W.T) * d                           # scaled so that r is O(1)
+
+
+def soft_body_problem(nc, nnodes, rng, h=0.04, k=50.0):
+    """Contacts on triangles of a soft body: W = H (h A^-1) H^T, A = I + h^2 k L (x) I3 with L the
+    Laplacian of a random nearest-neighbour graph (dense compliance, as the paper's warped A0^-1)."""
+    P = rng.random((nnodes, 3))
+    nb = np.argsort(np.linalg.norm(P[:, None] - P[None], axis=2), axis=1)[:, 1:7]
+    L = np.zeros((nnodes, nnodes))
+    L[np.repeat(np.arange(nnodes), 6), nb.ravel()] = -1
+    L = np.minimum(L, L.T)
+    L -= np.diag(L.sum(1))
+    C = h * np.linalg.inv(np.kron(np.eye(nnodes) + h * h * k * L, np.eye(3)))
+    H = np.zeros((3 * nc, 3 * nnodes))
+    for c in range(nc):
+        F = frame(rng.standard_normal(3))
+        for node, w in zip(rng.choice(nnodes, 3, replace=False), rng.dirichlet(np.ones(3))):
+            H[3 * c:3 * c + 3, 3 * node:3 * node + 3] += w * F
+    W = H @ C @ H.T
+    q = np.column_stack([rng.uniform(-1, 0.3, nc), 0.5 * rng.standard_normal((nc, 2))]).ravel()
+    return 0.5 * (W + W.T), q, rng.uniform(0.1, 0.7, nc)
+
+
+def rigid_bodies_problem(nb, nc, rng, pair_fraction=0.3):
+    """Rigid boxes touching the ground or each other; W = J M^-1 J^T is 3x3-block sparse (and rank
+    deficient: several contacts per body)."""
+    Minv = sp.block_diag([sp.diags(np.r_[np.full(3, 1 / rng.uniform(0.5, 2)), 1 / rng.uniform(0.05, 0.2, 3)])
+                          for _ in range(nb)]).tocsr()
+    rows, cols, vals = [], [], []
+    for c in range(nc):
+        a = rng.integers(nb)
+        b = rng.integers(nb) if rng.random() < pair_fraction else -1
+        F = frame(np.array([0, 0, 1.0]) + 0.2 * rng.standard_normal(3))
+        for body, sign in ((a, 1.0), (b, -1.0)):
+            if body < 0 or (body == a and sign < 0):
+                continue
+            p = rng.uniform(-0.5, 0.5, 3)
+            Jb = sign * np.hstack([F, -F @ skew(p)])     # relative velocity at p, in the contact frame
+            ii, jj = np.meshgrid(np.arange(3 * c, 3 * c + 3), np.arange(6 * body, 6 * body + 6), indexing="ij")
+            rows.append(ii.ravel()), cols.append(jj.ravel()), vals.append(Jb.ravel())
+    J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * nc, 6 * nb))
+    v = 0.3 * rng.standard_normal(6 * nb)
+    v[2::6] -= 1.0                                       # falling onto the ground
+    return (J @ Minv @ J.T).tocsr(), J @ v, rng.uniform(0.1, 0.7, nc)
+
+
+def lcp_by_enumeration(A, b):
+    """The solution of 0 <= A x + b ⊥ x >= 0 (A SPD): try every active set."""
+    n = len(b)
+    for k in range(n + 1):
+        for S in itertools.combinations(range(n), k):
+            S = list(S)
+            x = np.zeros(n)
+            if S:
+                x[S] = np.linalg.solve(A[np.ix_(S, S)], -b[S])
+            if np.all(x >= -1e-12) and np.all(A @ x + b >= -1e-12):
+                return x
+    raise AssertionError("no active set solves the LCP")
+
+
+@pytest.fixture(scope="module")
+def solve(backend):
+    from tissue.contact import solve_frictional_contact
+    return solve_frictional_contact
+
+
+# ----------------------------------------------------------------------------------------------
+# frictionless: the LCP
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed", range(8))
+def test_frictionless_matches_enumeration_and_qp(solve, seed):
+    rng = np.random.default_rng(seed)
+    n = 1 + seed % 6
+    W = random_delassus(n, rng)
+    q = rng.standard_normal(3 * n)
+    r, info = solve(W, q, 0.0, tol=1e-12, max_iterations=10000)
+    assert info.converged, info
+    Wn, qn = W[0::3, 0::3], q[0::3]
+    ref = lcp_by_enumeration(Wn, qn)
+    np.testing.assert_allclose(r[0::3], ref, atol=1e-6)
+    assert np.all(r[1::3] == 0) and np.all(r[2::3] == 0)
+    qp = scipy.optimize.minimize(lambda x: (0.5 * x @ Wn @ x + qn @ x, Wn @ x + qn), np.zeros(n), jac=True,
+                                 method="L-BFGS-B", bounds=[(0, None)] * n,
+                                 options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000})
+    np.testing.assert_allclose(r[0::3], qp.x, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------
+# one contact, by hand
+# ----------------------------------------------------------------------------------------------
+
+def test_single_contact_stick_slide_separate(solve):
+    # W = diag(wn, wt, wt), u = W r + q. Closing (q_n < 0): u_n = 0 gives r_n = -q_n / wn.
+    # Stick (u_t = 0): r_t = -q_t / wt, valid iff |q_t| / wt <= mu r_n.
+    # Slide: r_t = -mu r_n q_t / |q_t|, u_t = q_t (1 - wt mu r_n / |q_t|) (same direction as q_t).
+    wn, wt, mu = 2.0, 0.5, 0.4
+    W = np.diag([wn, wt, wt])
+    rn = 1.5
+    qn = -wn * rn
+    for qt, sticks in (([0.1, -0.2], True), ([0.8, 0.6], False)):
+        qt = np.array(qt)
+        assert (np.linalg.norm(qt) / wt <= mu * rn) == sticks
+        r, info = solve(W, np.r_[qn, qt], mu, tol=1e-14)
+        expect_t = -qt / wt if sticks else -mu * rn * qt / np.linalg.norm(qt)
+        np.testing.assert_allclose(r, np.r_[rn, expect_t], rtol=1e-13, atol=1e-15)
+        u = W @ r + np.r_[qn, qt]
+        if not sticks:
+            np.testing.assert_allclose(u[1:], qt * (1 - wt * mu * rn / np.linalg.norm(qt)), rtol=1e-12)
+        assert info.iterations <= 2                       # the local solve is exact
+    r, info = solve(W, np.array([0.3, 5.0, -1.0]), mu)   # separating: no force at all
+    assert np.all(r == 0) and info.iterations == 0
+
+
+def test_single_contact_coupled_block_is_exact(solve):
+    # A general SPD 3x3 block (normal and tangents coupled): check the Coulomb law case by case.
+    rng = np.random.default_rng(3)
+    slides = 0
+    for _ in range(50):
+        B = rng.standard_normal((3, 3))
+        A = B @ B.T + 0.05 * np.eye(3)
+        q = rng.standard_normal(3)
+        q[0] = -abs(q[0])
+        mu = rng.uniform(0.05, 1.0)
+        r, info = solve(A, q, mu, tol=1e-12)
+        u = A @ r + q
+        rt, ut = np.hypot(r[1], r[2]), np.hypot(u[1], u[2])
+        assert natural_map(A, q, mu, r) < 1e-12
+        assert r[0] >= 0 and abs(u[0]) < 1e-12 * (1 + abs(q).max())  # closing contact: u_n = 0
+        if ut > 1e-10:                                    # sliding: on the cone, opposing u_t
+            slides += 1
+            assert rt == pytest.approx(mu * r[0], rel=1e-10)
+            np.testing.assert_allclose(r[1:] / rt, -u[1:] / ut, atol=1e-8)
+        else:
+            assert rt <= mu * r[0] * (1 + 1e-12)
+    assert 10 < slides < 50                               # both regimes were exercised
+
+
+# ----------------------------------------------------------------------------------------------
+# a rigid block on a plane
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("push_ratio, sticks", [(0.5, True), (0.95, True), (1.5, False)])
+def test_block_on_plane(solve, push_ratio, sticks):
+    m, g, h, mu = 2.0, 9.81, 0.01, 0.5
+    a, b, c = 0.5, 0.3, 0.2                               # half extents; contacts at the bottom corners
+    I = m / 3 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
+    Minv = np.zeros((6, 6))
+    Minv[:3, :3], Minv[3:, 3:] = np.eye(3) / m, np.linalg.inv(I)
+    corners = [np.array([sx * a, sy * b, -c]) for sx in (-1, 1) for sy in (-1, 1)]
+    J = np.vstack([np.hstack([np.eye(3), -skew(p)]) for p in corners])   # frame (z; x, y)
+    J = J[np.array([[3 * i + 2, 3 * i, 3 * i + 1] for i in range(4)]).ravel()]
+    push = push_ratio * mu * m * g
+    v_free = h * Minv @ np.r_[push, 0, -m * g, 0, 0, 0]  # push along x at the centre of mass
+    W, q = J @ Minv @ J.T, J @ v_free
+    r, info = solve(W, q, mu, tol=1e-10, max_iterations=20000)
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-10
+    R = r.reshape(4, 3)
+    v = v_free + Minv @ J.T @ r                           # the body's velocity after the step
+    assert R[:, 0].sum() == pytest.approx(h * m * g, rel=1e-6)
+    if sticks:
+        np.testing.assert_allclose(v, 0, atol=1e-8)       # every contact point at rest
+        assert R[:, 1].sum() == pytest.approx(-h * push, rel=1e-6)   # friction balances the push
+    else:
+        assert v[0] == pytest.approx(h * (push - mu * m * g) / m, rel=1e-6)
+        np.testing.assert_allclose(v[1:], 0, atol=1e-8)
+        loaded = R[:, 0] > 1e-9
+        np.testing.assert_allclose(np.hypot(R[loaded, 1], R[loaded, 2]), mu * R[loaded, 0], rtol=1e-6)
+        assert R[:, 1].sum() == pytest.approx(-mu * h * m * g, rel=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------
+# random frictional problems
+# ----------------------------------------------------------------------------------------------
+
+def _report(label, info, n):
+    print(f"\n{label}: {n} contacts, {info.iterations} iterations, residual {info.residual:.2e}, "
+          f"{info.time_s * 1e3:.1f} ms")
+
+
+def test_soft_body_300_contacts(solve):
+    W, q, mu = soft_body_problem(300, 600, np.random.default_rng(0))
+    solve(W, q, mu, max_iterations=1)                     # compile outside the timing
+    r, info = solve(W, q, mu, tol=1e-6, max_iterations=1000)
+    _report("gauss-seidel dense", info, 300)
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-6
+    R = r.reshape(-1, 3)
+    assert np.all(R[:, 0] >= 0) and np.all(np.hypot(R[:, 1], R[:, 2]) <= mu * R[:, 0] * (1 + 1e-12))
+    # Jacobi gets there too, in more iterations.
+    rj, ij = solve(W, q, mu, tol=1e-6, max_iterations=20000, method="jacobi")
+    _report("jacobi dense", ij, 300)
+    assert ij.converged and natural_map(W, q, mu, rj) <= 1e-6 and ij.iterations > info.iterations
+    # Warm-started from its own solution, Gauss-Seidel has nothing left to do.
+    _, iw = solve(W, q, mu, r0=r)
+    assert iw.iterations == 0 and iw.converged
+
+
+@pytest.mark.parametrize("method", ["gauss_seidel", "jacobi"])
+def test_rigid_bodies_sparse_csr_matches_dense(solve, method):
+    from tissue.contact import FrictionalContactSolver
+    W, q, mu = rigid_bodies_problem(120, 300, np.random.default_rng(1))
+    s = FrictionalContactSolver(W, mu, method=method)
+    assert not s.dense                                    # large and sparse: block-CSR
+    tol, cap = (1e-6, 5000) if method == "gauss_seidel" else (1e-4, 20000)
+    r, info = s.solve(q, tol=tol, max_iterations=cap)
+    _report(f"{method} block-CSR (rigid bodies)", info, 300)
+    assert info.converged and natural_map(W, q, mu, r) <= tol
+    rd, idn = solve(W.toarray(), q, mu, tol=tol, max_iterations=cap, method=method)
+    assert abs(idn.iterations - info.iterations) <= 2     # same algorithm, rounding aside
+    np.testing.assert_allclose(rd, r, atol=1e-6)
+    # A dense W may be asked to go to block-CSR too (its zero blocks dropped).
+    rc, ic = solve(W.toarray(), q, mu, tol=tol, max_iterations=cap, method=method, layout="csr")
+    assert ic.iterations == info.iterations and np.array_equal(rc, r)
+
+
+def test_jacobi_safeguard_recovers_from_too_large_omega(solve):
+    from tissue.contact import FrictionalContactSolver
+    W, q, mu = rigid_bodies_problem(3, 30, np.random.default_rng(0))   # strongly coupled contacts
+    s = FrictionalContactSolver(W, mu, method="jacobi", omega=1.0)
+    r, info = s.solve(q, tol=1e-6, max_iterations=20000)
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-6 and s.last_omega < 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# bad input
+# ----------------------------------------------------------------------------------------------
+
+def _bad_cases():
+    W = np.eye(6)
+    q = np.array([-1.0, 0, 0, -1, 0, 0])
+    nonpd = np.eye(6)
+    nonpd[3, 3] = 0.0
+    missing = sp.csr_matrix(np.kron(np.array([[0, 1], [1, 0]]), np.ones((3, 3))) + 0.0)
+    return [
+        (dict(W=np.ones((6, 3)), q=q, mu=0.1), "W: must be square"),
+        (dict(W=np.eye(5), q=q[:5], mu=0.1), "W: size must be 3"),
+        (dict(W=W, q=q[:3], mu=0.1), "q: expected shape (6,)"),
+        (dict(W=W, q=q, mu=[0.1, 0.2, 0.3]), "mu: expected a scalar or shape (2,)"),
+        (dict(W=W, q=q, mu=[0.1, -0.2]), "mu: negative friction coefficient at contact 1"),
+        (dict(W=np.where(np.eye(6) > 0, np.nan, 0), q=q, mu=0.1), "W: contains non-finite"),
+        (dict(W=W, q=np.r_[q[:5], np.inf], mu=0.1), "q: contains non-finite"),
+        (dict(W=W, q=q, mu=[0.1, np.nan]), "mu: contains non-finite"),
+        (dict(W=W, q=q, mu=0.1, r0=np.zeros(3)), "r0: expected shape (6,)"),
+        (dict(W=W, q=q, mu=0.1, r0=np.full(6, np.nan)), "r0: contains non-finite"),
+        (dict(W=nonpd, q=q, mu=0.1), "W: diagonal 3x3 block of contact 1 is not positive definite"),
+        (dict(W=missing, q=q, mu=0.1), "W: diagonal 3x3 block of contact 0 is not positive definite"),
+        (dict(W=W, q=q, mu=0.1, method="newton"), "method: unknown value"),
+        (dict(W=W, q=q, mu=0.1, tol=-1.0), "tol: must be a positive number"),
+    ]
+
+
+@pytest.mark.parametrize("kwargs, message", _bad_cases())
+def test_bad_input(solve, kwargs, message):
+    with pytest.raises(TissueError) as e:
+        solve(**kwargs)
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_no_contacts(solve):
+    r, info = solve(np.zeros((0, 0)), np.zeros(0), 0.3)
+    assert r.shape == (0,) and info.converged and info.iterations == 0

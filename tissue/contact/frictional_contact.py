@@ -1,0 +1,532 @@
+"""The discrete 3-D frictional contact problem (FCLib form) by projected block Gauss-Seidel.
+
+Problem (Acary et al., FCLib): n contacts, per contact the order (normal, tangent1, tangent2);
+given the Delassus matrix W (3n x 3n), the free velocity q (3n,) and friction coefficients mu (n,),
+find reactions r with u = W r + q such that, for each contact,
+
+    K_mu ∋ r ⊥ û ∈ K_mu*,   û = (u_n + mu |u_t|, u_t),   K_mu = {r_n >= 0, |r_t| <= mu r_n}
+
+(De Saxcé's modified velocity; K_mu* = {mu |v_t| <= v_n} is the dual cone). Its three cases are
+separation (r = 0, u_n >= 0), sticking (u = 0, r inside K_mu) and sliding (u_n = 0,
+r_t = -mu r_n u_t / |u_t|). With mu = 0 it is the LCP 0 <= u_n ⊥ r_n >= 0, r_t = 0.
+
+Error measure (used to stop and reported in `info.residual`): the natural map of FCLib / Siconos
+`fc3d_compute_error` with rho = 1,
+
+    residual = || r - P_{K_mu}(r - û) ||_2 / (1 + ||q||_2),
+
+the norm over all 3n components; it is zero exactly at a solution. (Siconos divides by ||q||;
+the 1 + keeps it defined for q = 0.)
+
+Methods:
+  * "gauss_seidel" (default; Jean & Moreau, Duriez et al. 2006): contacts swept in order, each
+    contact's 3x3 problem solved exactly with the others' reactions fixed (see `_local_solve`).
+    The sweep is sequential by nature, so the whole iteration loop runs serially inside ONE Taichi
+    kernel (a launch costs more than a sweep of a few hundred contacts). A sweep reads W once
+    (contact i gathers rows 3i..3i+2 of W times r); the exact residual needs u = W r + q, a second
+    pass, so it is computed only when the errors met during the sweep say "converged" (plus at the
+    start, which lets a warm start that already solves the problem cost 0 sweeps).
+  * "jacobi": every contact solved in parallel from the previous iterate, then relaxed,
+    r <- r + omega (r_local - r). Parallel (for GPUs and thousands of contacts) but it converges
+    markedly slower than Gauss-Seidel on coupled problems (5-10x more iterations on the tests'
+    problems). omega starts at min(1, 1/lambda_max(D^-1 W)) (D the 3x3 diagonal blocks; for the LCP
+    relaxed block Jacobi converges when omega < 2/lambda_max). Safeguard: the residual is read
+    every JACOBI_CHECK_EVERY iterations; when it exceeds twice the best seen, or the best has not
+    improved for JACOBI_STALL_CHECKS checks, the best iterate is restored and omega halved.
+
+W is held on the device either dense (row-major) or, for a large sparse W, as 3x3 blocks in
+block-CSR. Taichi ndarrays are used rather than fields so that problems of any size reuse the same
+compiled kernels and are freed with the solver. Reactions are accumulated in the backend's float
+type (with float32, tolerances much below 1e-6 are out of reach).
+"""
+
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import taichi as ti
+
+from .. import backend
+from ..errors import TissueError
+
+METHODS = ("gauss_seidel", "jacobi")
+LAYOUTS = ("auto", "dense", "csr")
+# A sparse W goes to block-CSR when it has at least this many rows and at most this fill.
+CSR_MIN_ROWS, CSR_MAX_FILL = 600, 0.2
+JACOBI_CHECK_EVERY = 10   # Jacobi reads its residual back (a device sync) every this many iterations
+JACOBI_STALL_CHECKS = 20  # ... and halves omega after this many checks without a new best residual
+
+
+@dataclass
+class ContactInfo:
+    iterations: int      # sweeps (Gauss-Seidel) or parallel iterations (Jacobi) performed
+    residual: float      # natural-map residual of the returned r (see module docstring)
+    time_s: float        # wall time of solve() until r is back on the host (device synced); counts
+                         # uploading q and r0 (and compiling, on a process's first call), not W's upload
+    converged: bool      # residual <= tol
+    method: str = "gauss_seidel"
+
+
+# ----------------------------------------------------------------------------------------------
+# numpy reference pieces: the cone projection and the natural-map residual
+# ----------------------------------------------------------------------------------------------
+
+def project_cone(x: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """Projection of each row (x_n, x_t1, x_t2) of x (n, 3) on K_mu (closed form)."""
+    xn, nt = x[:, 0], np.linalg.norm(x[:, 1:], axis=1)
+    inside, polar = nt <= mu * xn, mu * nt <= -xn
+    a = (xn + mu * nt) / (1.0 + mu * mu)
+    scale = np.divide(mu * a, nt, out=np.zeros_like(a), where=nt > 0)
+    p = np.column_stack([a, scale[:, None] * x[:, 1:]])
+    p[polar] = 0.0
+    p[inside] = x[inside]
+    return p
+
+
+def natural_map_residual(W, q, mu, r) -> float:
+    """||r - P_K(r - û)|| / (1 + ||q||) with u = W r + q (see the module docstring)."""
+    q, r = np.asarray(q, dtype=np.float64), np.asarray(r, dtype=np.float64)
+    mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (len(q) // 3,))
+    u = (W @ r + q).reshape(-1, 3)
+    R = r.reshape(-1, 3)
+    x = R - u
+    x[:, 0] -= mu * np.linalg.norm(u[:, 1:], axis=1)
+    return float(np.linalg.norm(R - project_cone(x, mu)) / (1.0 + np.linalg.norm(q)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Taichi functions: the local 3x3 problem and the per-contact error
+# ----------------------------------------------------------------------------------------------
+
+@ti.func
+def _solve2(S, beta, c):
+    """(S + beta I)^-1 c for a 2x2 S."""
+    a, b, d, e = S[0, 0] + beta, S[0, 1], S[1, 0], S[1, 1] + beta
+    det = a * e - b * d
+    return ti.Vector([e * c[0] - b * c[1], a * c[1] - d * c[0]]) / det
+
+
+@ti.func
+def _slide_eval(S, c, ant, ann, bn, mu, beta):
+    """F(beta) = 1 - mu r_n / |r_t| and its derivative, where r_t = (S + beta I)^-1 c and r_n
+    follows from u_n = 0. A root is a sliding solution with u_t = -beta r_t."""
+    rt = _solve2(S, beta, c)
+    drt = -_solve2(S, beta, rt)
+    nt = rt.norm()
+    rn = -(bn + ant.dot(rt)) / ann
+    drn = -ant.dot(drt) / ann
+    dnt = rt.dot(drt) / nt
+    return ti.Vector([1.0 - mu * rn / nt, -mu * (drn * nt - rn * dnt) / (nt * nt)])
+
+
+@ti.func
+def _local_solve(A, b, mu):
+    """Exact solution r of one contact's problem u = A r + b (A the 3x3 diagonal block of W).
+
+    Separation iff b_n >= 0 (then r = 0 gives û_n = b_n >= 0; testing b_n rather than the sign of
+    the sticking r_n stays right when A couples normal and tangent). Otherwise eliminate r_n with
+    u_n = 0 (S: Schur complement of A_nn, c: right-hand side), giving r_t(beta) = (S + beta I)^-1 c
+    where u_t = -beta r_t: beta = 0 is sticking, beta > 0 sliding with beta fixed by |r_t| = mu r_n.
+    F(0) > 0 whenever the sticking reaction leaves the cone and F -> -inf as beta grows, so a
+    bracketed, safeguarded Newton always finds a root. For isotropic diagonal A, F is linear in
+    beta and the first Newton step is exact.
+    """
+    r = ti.Vector([0.0, 0.0, 0.0])
+    if b[0] < 0.0:
+        if mu <= 0.0:
+            r[0] = -b[0] / A[0, 0]
+        else:
+            ann = A[0, 0]
+            ant = ti.Vector([A[0, 1], A[0, 2]])
+            atn = ti.Vector([A[1, 0], A[2, 0]])
+            S = ti.Matrix([[A[1, 1], A[1, 2]], [A[2, 1], A[2, 2]]]) - atn.outer_product(ant) / ann
+            c = atn * (b[0] / ann) - ti.Vector([b[1], b[2]])
+            rt = _solve2(S, 0.0, c)
+            rn = -(b[0] + ant.dot(rt)) / ann
+            if rn < 0.0 or rt.norm() > mu * rn:     # sticking reaction outside the cone: slide
+                lo, hi = 0.0, S[0, 0] + S[1, 1]
+                for _ in range(200):                # grow hi until F(hi) < 0
+                    if _slide_eval(S, c, ant, ann, b[0], mu, hi)[0] < 0.0:
+                        break
+                    lo = hi
+                    hi *= 4.0
+                beta = lo
+                for _ in range(100):
+                    f = _slide_eval(S, c, ant, ann, b[0], mu, beta)
+                    if f[0] > 0.0:
+                        lo = beta
+                    else:
+                        hi = beta
+                    if ti.abs(f[0]) <= 1e-14 or hi - lo <= 1e-15 * hi:
+                        break
+                    step = beta - f[0] / f[1]
+                    if not (lo < step < hi):        # Newton left the bracket: bisect
+                        step = 0.5 * (lo + hi)
+                    beta = step
+                rt = _solve2(S, beta, c)
+                rn = ti.max(-(b[0] + ant.dot(rt)) / ann, 0.0)
+                rt *= mu * rn / rt.norm()           # land exactly on the cone's boundary
+            r = ti.Vector([rn, rt[0], rt[1]])
+    return r
+
+
+@ti.func
+def _contact_error2(r, u, mu):
+    """Squared natural-map error of one contact: |r - P_K(r - û)|^2."""
+    x = r - u
+    ut = ti.Vector([u[1], u[2]]).norm()
+    x[0] -= mu * ut
+    xn, nt = x[0], ti.Vector([x[1], x[2]]).norm()
+    p = ti.Vector([0.0, 0.0, 0.0])
+    if nt <= mu * xn:
+        p = x
+    elif mu * nt > -xn:                             # neither inside K nor in its polar cone
+        a = (xn + mu * nt) / (1.0 + mu * mu)
+        p = ti.Vector([a, mu * a * x[1] / nt, mu * a * x[2] / nt])
+    e = r - p
+    return e.dot(e)
+
+
+@ti.func
+def _vec(a: ti.template(), i):
+    return ti.Vector([a[3 * i], a[3 * i + 1], a[3 * i + 2]])
+
+
+@ti.func
+def _block(Wd: ti.template(), i):
+    A = ti.Matrix.zero(float, 3, 3)
+    for a, c in ti.static(ti.ndrange(3, 3)):
+        A[a, c] = Wd[i, a, c]
+    return A
+
+
+@ti.func
+def _error2(r: ti.template(), u: ti.template(), mu: ti.template()):
+    s = 0.0
+    for i in range(mu.shape[0]):
+        s += _contact_error2(_vec(r, i), _vec(u, i), mu[i])
+    return s
+
+
+# ----------------------------------------------------------------------------------------------
+# Products with W: rows 3i..3i+2 of W times r (gathers, so no atomics and reductions in registers)
+# ----------------------------------------------------------------------------------------------
+
+@ti.func
+def _wr_dense(W: ti.template(), r: ti.template(), i):
+    s0, s1, s2 = 0.0, 0.0, 0.0
+    for l in range(r.shape[0]):
+        rl = r[l]
+        s0 += W[3 * i, l] * rl
+        s1 += W[3 * i + 1, l] * rl
+        s2 += W[3 * i + 2, l] * rl
+    return ti.Vector([s0, s1, s2])
+
+
+@ti.func
+def _wr_csr(indptr: ti.template(), indices: ti.template(), blocks: ti.template(), r: ti.template(), i):
+    # blocks[k] is the 3x3 block (i, indices[k]) of W.
+    s = ti.Vector([0.0, 0.0, 0.0])
+    for k in range(indptr[i], indptr[i + 1]):
+        j = indices[k]
+        for a, c in ti.static(ti.ndrange(3, 3)):
+            s[a] += blocks[k, a, c] * r[3 * j + c]
+    return s
+
+
+@ti.func
+def _gs_update(i, wr, q: ti.template(), Wd: ti.template(), mu: ti.template(), r: ti.template()):
+    """Solve contact i with the others fixed (wr = (W r)_i), store r_i; return the squared
+    natural-map error the old r_i had, a cheap running estimate of the residual."""
+    A = _block(Wd, i)
+    ri = _vec(r, i)
+    ui = _vec(q, i) + wr
+    rnew = _local_solve(A, ui - A @ ri, mu[i])
+    for c in ti.static(range(3)):
+        r[3 * i + c] = rnew[c]
+    return _contact_error2(ri, ui, mu[i])
+
+
+# ----------------------------------------------------------------------------------------------
+# Gauss-Seidel kernels: all sweeps in one launch, serial. The exact residual needs u = W r + q
+# (one more pass over W), so it is computed only when the sweep's running estimate says "converged"
+# (and at the start and the end).
+# ----------------------------------------------------------------------------------------------
+
+@ti.kernel
+def _gs_dense(W: ti.types.ndarray(), Wd: ti.types.ndarray(), q: ti.types.ndarray(),
+              mu: ti.types.ndarray(), r: ti.types.ndarray(), u: ti.types.ndarray(),
+              max_it: ti.i32, tol2: float, stats: ti.types.ndarray()):
+    it, est, err2 = 0, 0.0, 0.0
+    while True:
+        if it == 0 or est <= tol2 or it >= max_it:
+            for k in range(q.shape[0]):
+                s = q[k]
+                for l in range(q.shape[0]):
+                    s += W[k, l] * r[l]
+                u[k] = s
+            err2 = _error2(r, u, mu)
+            if err2 <= tol2 or it >= max_it:
+                break
+        est = 0.0
+        for i in range(mu.shape[0]):
+            est += _gs_update(i, _wr_dense(W, r, i), q, Wd, mu, r)
+        it += 1
+    stats[0] = it
+    stats[1] = err2
+
+
+@ti.kernel
+def _gs_csr(indptr: ti.types.ndarray(), indices: ti.types.ndarray(), blocks: ti.types.ndarray(),
+            Wd: ti.types.ndarray(), q: ti.types.ndarray(), mu: ti.types.ndarray(),
+            r: ti.types.ndarray(), u: ti.types.ndarray(), max_it: ti.i32, tol2: float,
+            stats: ti.types.ndarray()):
+    it, est, err2 = 0, 0.0, 0.0
+    while True:
+        if it == 0 or est <= tol2 or it >= max_it:
+            for i in range(mu.shape[0]):
+                ui = _vec(q, i) + _wr_csr(indptr, indices, blocks, r, i)
+                for c in ti.static(range(3)):
+                    u[3 * i + c] = ui[c]
+            err2 = _error2(r, u, mu)
+            if err2 <= tol2 or it >= max_it:
+                break
+        est = 0.0
+        for i in range(mu.shape[0]):
+            est += _gs_update(i, _wr_csr(indptr, indices, blocks, r, i), q, Wd, mu, r)
+        it += 1
+    stats[0] = it
+    stats[1] = err2
+
+
+# ----------------------------------------------------------------------------------------------
+# Jacobi kernels: one launch per stage, everything parallel
+# ----------------------------------------------------------------------------------------------
+
+@ti.kernel
+def _matvec_dense(W: ti.types.ndarray(), q: ti.types.ndarray(), r: ti.types.ndarray(),
+                  u: ti.types.ndarray()):
+    for k in range(q.shape[0]):
+        s = q[k]
+        for l in range(q.shape[0]):
+            s += W[k, l] * r[l]
+        u[k] = s
+
+
+@ti.kernel
+def _matvec_csr(indptr: ti.types.ndarray(), indices: ti.types.ndarray(), blocks: ti.types.ndarray(),
+                q: ti.types.ndarray(), r: ti.types.ndarray(), u: ti.types.ndarray()):
+    for i in range(indptr.shape[0] - 1):
+        ui = _vec(q, i) + _wr_csr(indptr, indices, blocks, r, i)
+        for c in ti.static(range(3)):
+            u[3 * i + c] = ui[c]
+
+
+@ti.kernel
+def _jacobi_step(Wd: ti.types.ndarray(), mu: ti.types.ndarray(), r: ti.types.ndarray(),
+                 u: ti.types.ndarray(), omega: float):
+    for i in range(mu.shape[0]):
+        A = _block(Wd, i)
+        ri = _vec(r, i)
+        d = _local_solve(A, _vec(u, i) - A @ ri, mu[i]) - ri
+        for c in ti.static(range(3)):               # a convex combination stays in the cone
+            r[3 * i + c] += omega * d[c]
+
+
+@ti.kernel
+def _error2_kernel(r: ti.types.ndarray(), u: ti.types.ndarray(), mu: ti.types.ndarray(),
+                   stats: ti.types.ndarray()):
+    stats[1] = 0.0
+    for i in range(mu.shape[0]):
+        stats[1] += _contact_error2(_vec(r, i), _vec(u, i), mu[i])
+
+
+# ----------------------------------------------------------------------------------------------
+# Python side: validation, upload, solve loops
+# ----------------------------------------------------------------------------------------------
+
+def _finite(name, a):
+    if not np.all(np.isfinite(a)):
+        raise TissueError(f"{name}: contains non-finite entries (nan or inf)")
+
+
+def _diagonal_blocks(W, n):
+    if sp.issparse(W):
+        B = sp.bsr_matrix(W, blocksize=(3, 3))
+        rows = np.repeat(np.arange(n), np.diff(B.indptr))
+        on = B.indices == rows
+        D = np.zeros((n, 3, 3))
+        np.add.at(D, rows[on], B.data[on])
+        return D
+    idx = np.arange(n)
+    return W.reshape(n, 3, n, 3)[idx, :, idx, :]
+
+
+class FrictionalContactSolver:
+    """W and mu validated and uploaded once; solve() may then run for many q (as the haptic loop
+    re-solves with a new free velocity between two simulation steps)."""
+
+    def __init__(self, W, mu, method: str = "gauss_seidel", layout: str = "auto", omega=None):
+        if method not in METHODS:
+            raise TissueError(f"method: unknown value {method!r}; expected one of {', '.join(METHODS)}")
+        if layout not in LAYOUTS:
+            raise TissueError(f"layout: unknown value {layout!r}; expected one of {', '.join(LAYOUTS)}")
+        if sp.issparse(W):
+            W = sp.csr_matrix(W, dtype=np.float64)
+            _finite("W", W.data)
+        else:
+            W = np.asarray(W, dtype=np.float64)
+            if W.ndim != 2:
+                raise TissueError(f"W: must be a 2-D matrix, got shape {W.shape}")
+            _finite("W", W)
+        if W.shape[0] != W.shape[1]:
+            raise TissueError(f"W: must be square, got shape {W.shape}")
+        if W.shape[0] % 3:
+            raise TissueError(f"W: size must be 3 x (number of contacts), got {W.shape[0]}")
+        n = W.shape[0] // 3
+        mu = np.asarray(mu, dtype=np.float64)
+        if mu.ndim == 0:
+            mu = np.full(n, float(mu))
+        if mu.shape != (n,):
+            raise TissueError(f"mu: expected a scalar or shape ({n},) to match W {W.shape}, got {mu.shape}")
+        _finite("mu", mu)
+        if np.any(mu < 0):
+            raise TissueError(f"mu: negative friction coefficient at contact {int(np.argmax(mu < 0))}")
+        D = _diagonal_blocks(W, n)
+        if n:
+            sym = 0.5 * (D + D.transpose(0, 2, 1))
+            lo = np.linalg.eigvalsh(sym)[:, 0]
+            bad = np.flatnonzero(lo <= 1e-14 * np.abs(sym).max(axis=(1, 2)))
+            if len(bad):
+                raise TissueError(f"W: diagonal 3x3 block of contact {bad[0]} is not positive definite"
+                                  f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
+        self.n, self.W, self.mu, self.method = n, W, mu, method
+        self.dense = layout == "dense" or (layout == "auto" and (
+            not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
+        # Jacobi's starting relaxation factor (given, or estimated from the spectrum of D^-1 W).
+        self.omega = float(omega) if omega is not None else (
+            self._initial_omega(D) if method == "jacobi" else 1.0)
+        if n:
+            self._upload(D)
+
+    def _initial_omega(self, D):
+        """min(1, 1/lambda_max(D^-1 W)) by a few power iterations (they approach from below)."""
+        if self.n == 0:
+            return 1.0
+        Dinv = np.linalg.inv(D)
+        x = np.random.default_rng(0).standard_normal(3 * self.n)
+        lam = 1.0
+        for _ in range(30):
+            y = np.einsum("iab,ib->ia", Dinv, (self.W @ x).reshape(-1, 3)).ravel()
+            lam = np.linalg.norm(y) / np.linalg.norm(x)
+            x = y / np.linalg.norm(y)
+        return min(1.0, 1.0 / lam)
+
+    def _upload(self, D):
+        real = backend.current().real
+        npr = np.float64 if real == ti.f64 else np.float32
+
+        def nd(a, dtype=real):
+            a = np.ascontiguousarray(a, dtype=npr if dtype == real else np.int32)
+            arr = ti.ndarray(dtype=dtype, shape=a.shape)
+            arr.from_numpy(a)
+            return arr
+
+        self._npr = npr
+        m = 3 * self.n
+        self._Wd, self._mu = nd(D), nd(self.mu)
+        self._q, self._r, self._u = (ti.ndarray(dtype=real, shape=(m,)) for _ in range(3))
+        self._stats = ti.ndarray(dtype=real, shape=(2,))
+        if self.dense:
+            W = self.W.toarray() if sp.issparse(self.W) else self.W
+            self._W = nd(W)
+        else:
+            B = sp.bsr_matrix(sp.csr_matrix(self.W), blocksize=(3, 3))   # csr_matrix drops zeros
+            B.sort_indices()
+            self._csr = (nd(B.indptr, ti.i32), nd(B.indices, ti.i32), nd(B.data))
+
+    def solve(self, q, tol: float = 1e-6, max_iterations: int = 1000, r0=None):
+        n = self.n
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (3 * n,):
+            raise TissueError(f"q: expected shape ({3 * n},) to match W {self.W.shape}, got {q.shape}")
+        _finite("q", q)
+        if r0 is None:
+            r0 = np.zeros(3 * n)
+        r0 = np.asarray(r0, dtype=np.float64)
+        if r0.shape != (3 * n,):
+            raise TissueError(f"r0: expected shape ({3 * n},) to match W {self.W.shape}, got {r0.shape}")
+        _finite("r0", r0)
+        if not (np.isfinite(tol) and tol > 0):
+            raise TissueError(f"tol: must be a positive number, got {tol!r}")
+        if int(max_iterations) != max_iterations or max_iterations < 0:
+            raise TissueError(f"max_iterations: must be a non-negative integer, got {max_iterations!r}")
+        max_iterations = int(max_iterations)
+        if n == 0:
+            return np.zeros(0), ContactInfo(0, 0.0, 0.0, True, self.method)
+
+        t0 = time.perf_counter()
+        self._q.from_numpy(q.astype(self._npr))
+        # Start inside the cones: Jacobi's relaxation keeps r where it starts.
+        self._r.from_numpy(project_cone(r0.reshape(-1, 3), self.mu).ravel().astype(self._npr))
+        tol_abs = tol * (1.0 + np.linalg.norm(q))
+        run = self._gauss_seidel if self.method == "gauss_seidel" else self._jacobi
+        iterations = run(max_iterations, tol_abs)
+        backend.sync()
+        r = self._r.to_numpy().astype(np.float64)
+        elapsed = time.perf_counter() - t0
+        residual = natural_map_residual(self.W, q, self.mu, r)   # in float64, whatever the backend
+        info = ContactInfo(iterations, residual, elapsed, residual <= tol, self.method)
+        return r, info
+
+    def _gauss_seidel(self, max_iterations, tol_abs):
+        layout = (_gs_dense, (self._W,)) if self.dense else (_gs_csr, self._csr)
+        layout[0](*layout[1], self._Wd, self._q, self._mu, self._r, self._u,
+                  max_iterations, tol_abs ** 2, self._stats)
+        return int(self._stats.to_numpy()[0])
+
+    def _jacobi(self, max_iterations, tol_abs):
+        omega, best = self.omega, np.inf
+        matvec = (lambda: _matvec_dense(self._W, self._q, self._r, self._u)) if self.dense else (
+            lambda: _matvec_csr(*self._csr, self._q, self._r, self._u))
+        r_best = ti.ndarray(dtype=backend.current().real, shape=(3 * self.n,))
+        it = stalled = 0
+        while True:
+            matvec()
+            if it % JACOBI_CHECK_EVERY == 0 or it >= max_iterations:
+                _error2_kernel(self._r, self._u, self._mu, self._stats)
+                err = float(np.sqrt(self._stats.to_numpy()[1]))
+                if err <= tol_abs or it >= max_iterations:
+                    break
+                if err < best:
+                    best, stalled = err, 0
+                    r_best.copy_from(self._r)
+                else:
+                    stalled += 1
+                # Diverging or cycling: back to the best iterate and relax harder.
+                if (err > 2.0 * best or stalled >= JACOBI_STALL_CHECKS) and omega > 1e-6:
+                    omega, stalled = 0.5 * omega, 0
+                    self._r.copy_from(r_best)
+                    matvec()
+            _jacobi_step(self._Wd, self._mu, self._r, self._u, omega)
+            it += 1
+        if err > best:                              # hand back the best iterate seen
+            self._r.copy_from(r_best)
+        self.last_omega = omega
+        return it
+
+
+def solve_frictional_contact(W, q, mu, tol: float = 1e-6, max_iterations: int = 1000, r0=None,
+                             method: str = "gauss_seidel", layout: str = "auto"):
+    """Solve the frictional contact problem (W, q, mu); returns (r, ContactInfo).
+
+    W: (3n, 3n) Delassus matrix, dense or scipy sparse; q: (3n,) free velocity; mu: scalar or (n,);
+    per contact the order is (normal, tangent1, tangent2). Stops when the natural-map residual
+    ||r - P_K(r - û)|| / (1 + ||q||) is <= tol or after max_iterations sweeps; r0 warm-starts.
+    method: "gauss_seidel" (serial, fast convergence) or "jacobi" (parallel, slower convergence).
+    layout: "auto" | "dense" | "csr" storage of W on the device (auto: block-CSR for a large sparse W).
+    Taichi must be initialised (tissue.backend.init). Bad input raises TissueError.
+    """
+    return FrictionalContactSolver(W, mu, method, layout).solve(q, tol, max_iterations, r0)
