@@ -1,0 +1,318 @@
+"""Implicit backward Euler with one linearisation per step, solved by matrix-free filtered CG.
+
+    (M - h B - h² K) dv = h f(x, v) + h² K v,   v⁺ = v + dv,   x⁺ = x + h v⁺      (NOTES eq. 4)
+
+with K = -Σ R Kₑ Rᵀ (the co-rotational tangent) and Rayleigh damping B = -(α_M M + α_K (-K)), so
+the matrix is A = (1 + h α_M) M + (h α_K + h²) Σ R Kₑ Rᵀ. It is never assembled: CG needs only
+A p, computed element by element (tissue.fem.corotational).
+
+Launches are what cost on small meshes (tens of µs each from Python), so a whole step runs in very
+few kernels: "serial" runs the CG loop inside one single-threaded kernel (best for the paper's
+real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each iteration six
+parallel loops that exit early once converged. Dot products are blocked partial sums added in a
+fixed order, so results are bit-identical run to run.
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from .. import backend
+from ..errors import TissueError
+from ..fem import CorotationalFEM
+from ..stats import Stats
+
+PRECONDITIONERS = ("none", "jacobi")
+EXECUTIONS = ("auto", "serial", "parallel")
+
+# Scalar slots of the CG state kept on the device.
+DELTA, DELTA0, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE = range(12)
+
+
+@dataclass(frozen=True)
+class CGSettings:
+    """Conjugate-gradient stopping rule and preconditioner (SOFA's CGLinearSolver defaults)."""
+
+    max_iterations: int = 25
+    tolerance: float = 1e-9     # stop when rᵀz ≤ tolerance² r₀ᵀz₀ (‖r‖/‖b‖ without preconditioner)
+    threshold: float = 1e-30    # stop when |pᵀAp| falls under it
+    preconditioner: str = "none"
+
+    def __post_init__(self):
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise TissueError(f"max_iterations: must be an integer ≥ 1, got {self.max_iterations!r}")
+        if not self.tolerance >= 0:
+            raise TissueError(f"tolerance: must be ≥ 0, got {self.tolerance!r}")
+        if not self.threshold >= 0:
+            raise TissueError(f"threshold: must be ≥ 0, got {self.threshold!r}")
+        if self.preconditioner not in PRECONDITIONERS:
+            raise TissueError(f"preconditioner: unknown {self.preconditioner!r}; expected one of {PRECONDITIONERS}")
+
+
+@ti.data_oriented
+class ImplicitEuler:
+    """Time integration of one soft body. State: positions `x` and velocities `v` (Taichi fields)."""
+
+    def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
+                 rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
+                 cg: CGSettings = CGSettings(), fixed=None, execution: str = "auto",
+                 unroll: int = 5):
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise TissueError(f"dt: the time step must be a finite number > 0 s, got {dt!r}")
+        for name, value in (("rayleigh_mass", rayleigh_mass), ("rayleigh_stiffness", rayleigh_stiffness)):
+            if not (math.isfinite(value) and value >= 0):
+                raise TissueError(f"{name}: must be a finite number ≥ 0, got {value!r}")
+        if execution not in EXECUTIONS:
+            raise TissueError(f"execution: unknown {execution!r}; expected one of {EXECUTIONS}")
+        if fem.accumulation == "colouring":
+            raise TissueError("accumulation: 'colouring' needs one launch per colour and is offered for the "
+                              "force/stiffness ablation only; the solver fuses its loops with 'gather' or 'atomic'")
+        be = backend.current()
+        if execution == "auto":
+            execution = "serial" if (be.arch == "cpu" and fem.n_elements < 4000) else "parallel"
+        self.fem, self.dt, self.cg = fem, float(dt), cg
+        self.execution, self.unroll = execution, unroll
+        self.gravity = tuple(float(g) for g in gravity)
+        self.rayleigh_mass, self.rayleigh_stiffness = float(rayleigh_mass), float(rayleigh_stiffness)
+        self.stats = Stats()
+        n, real = fem.n_nodes, be.real
+
+        self.x = ti.Vector.field(3, real, n)
+        self.v = ti.Vector.field(3, real, n)
+        self.dv = ti.Vector.field(3, real, n)
+        self.r = ti.Vector.field(3, real, n)
+        self.z = ti.Vector.field(3, real, n)
+        self.p = ti.Vector.field(3, real, n)
+        self.q = ti.Vector.field(3, real, n)
+        self.fixed = ti.field(ti.i32, n)
+        self.scalars = ti.field(real, 12)
+        self.block = 1024 if be.arch == "cpu" else 32
+        self.n_blocks = (n + self.block - 1) // self.block
+        self.partial = ti.field(real, (2, self.n_blocks))
+        if cg.preconditioner == "jacobi":
+            self.block_inverse = ti.Matrix.field(3, 3, real, n)
+        self.x.copy_from(fem.rest)
+        self.set_fixed(fixed if fixed is not None else [])
+
+    # ---- state at the numpy boundary --------------------------------------------------------
+
+    def set_fixed(self, nodes) -> None:
+        nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
+        bad = nodes[(nodes < 0) | (nodes >= self.fem.n_nodes)]
+        if len(bad):
+            raise TissueError(f"fixed: node ids {bad[:10].tolist()} out of range [0, {self.fem.n_nodes})")
+        mask = np.zeros(self.fem.n_nodes, dtype=np.int32)
+        mask[nodes] = 1
+        self.fixed.from_numpy(mask)
+        self.fixed_nodes = np.flatnonzero(mask)
+
+    def positions(self) -> np.ndarray:
+        return self.x.to_numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        return self.v.to_numpy().astype(np.float64)
+
+    def set_state(self, positions=None, velocities=None) -> None:
+        dtype = np.float64 if self.x.dtype == ti.f64 else np.float32
+        if positions is not None:
+            self.x.from_numpy(np.asarray(positions, dtype=dtype))
+        if velocities is not None:
+            self.v.from_numpy(np.asarray(velocities, dtype=dtype))
+
+    # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
+
+    @property
+    def mass_factor(self) -> float:
+        return 1.0 + self.dt * self.rayleigh_mass
+
+    @property
+    def stiffness_factor(self) -> float:
+        return self.dt * self.rayleigh_stiffness + self.dt ** 2
+
+    # ---- the step ---------------------------------------------------------------------------
+
+    def step(self) -> None:
+        """Advance one time step; raises TissueError if the state became non-finite."""
+        with self.stats.stage("rotations+forces"):
+            if self.execution == "serial":
+                self._begin_serial()
+            else:
+                self._begin_parallel()
+        with self.stats.stage("cg"):
+            if self.execution == "serial":
+                self._solve_serial()
+            else:
+                for _ in range(-(-self.cg.max_iterations // self.unroll)):
+                    self._iterate_parallel()
+                self._end_parallel()
+        s = self.scalars.to_numpy()
+        rel = math.sqrt(max(s[RES2], 0.0) / s[RHS2]) if s[RHS2] > 0 else 0.0
+        self.stats.count(cg_iterations=int(s[ITERATION]), cg_residual=rel, cg_breakdown=int(s[BREAKDOWN]))
+        if s[NONFINITE] > 0:
+            raise TissueError(f"the simulation diverged: {int(s[NONFINITE])} nodes have non-finite velocities "
+                              f"(dt={self.dt}, E={self.fem.material.young}, ν={self.fem.material.poisson}); "
+                              "reduce dt or check the material and the constraints")
+
+    def run(self, steps: int) -> np.ndarray:
+        for _ in range(steps):
+            self.step()
+        return self.positions()
+
+    # ---- kernels: a step is begin, CG iterations, end --------------------------------------
+
+    @ti.func
+    def _sum_partials(self, slot):
+        s = 0.0
+        for b in range(self.n_blocks):
+            s += self.partial[slot, b]
+        return s
+
+    @ti.func
+    def _preconditioned(self, v, r):
+        z = r
+        if ti.static(self.cg.preconditioner == "jacobi"):
+            z = self.block_inverse[v] @ r
+        return z
+
+    @ti.func
+    def _begin(self):
+        h, fem = self.dt, self.fem
+        mass_factor = 1.0 + h * self.rayleigh_mass
+        stiffness_factor = h * self.rayleigh_stiffness + h * h
+        g = ti.Vector(self.gravity)
+        fem.update_rotations(self.x)
+        fem.scatter("force", self.x)
+        for v in range(fem.n_nodes):  # the forces f(x, v), kept in r until the right-hand side is complete
+            m = fem.mass[v]
+            self.r[v] = fem.gathered(v) + m * g - self.rayleigh_mass * m * self.v[v]
+        fem.scatter("stiffness", self.v)
+        for b in range(self.n_blocks):
+            rz, rr = 0.0, 0.0
+            for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
+                rhs = h * self.r[v] + stiffness_factor * fem.gathered(v)
+                if self.fixed[v]:
+                    rhs = ti.Vector([0.0, 0.0, 0.0])
+                if ti.static(self.cg.preconditioner == "jacobi"):
+                    A = mass_factor * fem.mass[v] * ti.Matrix.identity(float, 3) \
+                        + stiffness_factor * fem.stiffness_diagonal(v)
+                    self.block_inverse[v] = A.inverse()
+                z = self._preconditioned(v, rhs)
+                self.dv[v] = ti.Vector([0.0, 0.0, 0.0])
+                self.r[v] = rhs
+                self.z[v] = z
+                self.p[v] = z
+                rz += rhs.dot(z)
+                rr += rhs.dot(rhs)
+            self.partial[0, b] = rz
+            self.partial[1, b] = rr
+        for _ in range(1):
+            delta = self._sum_partials(0)
+            self.scalars[DELTA] = delta
+            self.scalars[DELTA0] = delta
+            self.scalars[RHS2] = self._sum_partials(1)
+            self.scalars[ITERATION] = 0
+            self.scalars[BREAKDOWN] = 0
+            self.scalars[DONE] = 1 if delta <= 0 else 0
+
+    @ti.func
+    def _iteration(self):
+        fem = self.fem
+        mass_factor = 1.0 + self.dt * self.rayleigh_mass
+        stiffness_factor = self.dt * self.rayleigh_stiffness + self.dt * self.dt
+        for e in range(fem.n_elements):  # element stage, skipped once converged
+            if self.scalars[DONE] == 0:
+                fem.scatter_element("stiffness", e, self.p)
+        for b in range(self.n_blocks):  # q = A p (filtered), and pᵀq
+            pq = 0.0
+            if self.scalars[DONE] == 0:
+                for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
+                    qv = mass_factor * fem.mass[v] * self.p[v] - stiffness_factor * fem.gathered(v)
+                    if self.fixed[v]:
+                        qv = ti.Vector([0.0, 0.0, 0.0])
+                    self.q[v] = qv
+                    pq += self.p[v].dot(qv)
+            self.partial[0, b] = pq
+        for _ in range(1):
+            if self.scalars[DONE] == 0:
+                pq = self._sum_partials(0)
+                self.scalars[PQ] = pq
+                if not (ti.abs(pq) > self.cg.threshold) or not (pq == pq):
+                    self.scalars[DONE] = 1
+                    if pq < 0 or not (pq == pq):
+                        self.scalars[BREAKDOWN] = 1
+                else:
+                    self.scalars[ALPHA] = self.scalars[DELTA] / pq
+        for b in range(self.n_blocks):  # dv += α p, r -= α q, z = P⁻¹ r, and rᵀz
+            rz = 0.0
+            if self.scalars[DONE] == 0:
+                alpha = self.scalars[ALPHA]
+                for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
+                    self.dv[v] += alpha * self.p[v]
+                    r = self.r[v] - alpha * self.q[v]
+                    z = self._preconditioned(v, r)
+                    self.r[v] = r
+                    self.z[v] = z
+                    rz += r.dot(z)
+            self.partial[0, b] = rz
+        for _ in range(1):
+            if self.scalars[DONE] == 0:
+                delta = self._sum_partials(0)
+                self.scalars[DELTA_OLD] = self.scalars[DELTA]
+                self.scalars[DELTA] = delta
+                self.scalars[ITERATION] += 1
+                self.scalars[BETA] = delta / self.scalars[DELTA_OLD]
+                tol = self.cg.tolerance
+                if delta <= tol * tol * self.scalars[DELTA0] or self.scalars[ITERATION] >= self.cg.max_iterations:
+                    self.scalars[DONE] = 1
+        for v in range(self.fem.n_nodes):
+            if self.scalars[DONE] == 0:
+                self.p[v] = self.z[v] + self.scalars[BETA] * self.p[v]
+
+    @ti.func
+    def _end(self):
+        h = self.dt
+        for b in range(self.n_blocks):
+            rr, bad = 0.0, 0.0
+            for v in range(b * self.block, ti.min((b + 1) * self.block, self.fem.n_nodes)):
+                vel = self.v[v] + self.dv[v]
+                if self.fixed[v]:
+                    vel = ti.Vector([0.0, 0.0, 0.0])
+                if not (vel.norm_sqr() < 1e300):  # NaN or inf
+                    bad += 1.0
+                self.v[v] = vel
+                self.x[v] += h * vel
+                rr += self.r[v].dot(self.r[v])
+            self.partial[0, b] = rr
+            self.partial[1, b] = bad
+        for _ in range(1):
+            self.scalars[RES2] = self._sum_partials(0)
+            self.scalars[NONFINITE] = self._sum_partials(1)
+
+    @ti.kernel
+    def _begin_parallel(self):
+        self._begin()
+
+    @ti.kernel
+    def _iterate_parallel(self):
+        for _ in ti.static(range(self.unroll)):
+            self._iteration()
+
+    @ti.kernel
+    def _end_parallel(self):
+        self._end()
+
+    @ti.kernel
+    def _begin_serial(self):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            self._begin()
+
+    @ti.kernel
+    def _solve_serial(self):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            while self.scalars[DONE] == 0:
+                self._iteration()
+            self._end()

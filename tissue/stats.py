@@ -1,0 +1,45 @@
+"""Per-stage wall times and counters of a simulation (host time after `ti.sync()`)."""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+
+import numpy as np
+import taichi as ti
+
+
+class Stats:
+    """Times per stage (seconds, one entry per step) and the last value of each counter."""
+
+    def __init__(self):
+        self.times: dict[str, list[float]] = defaultdict(list)
+        self.counters: dict[str, float] = {}
+        self.history: dict[str, list[float]] = defaultdict(list)
+
+    @contextmanager
+    def stage(self, name: str):
+        ti.sync()
+        start = time.perf_counter()
+        yield
+        ti.sync()
+        self.times[name].append(time.perf_counter() - start)
+
+    def count(self, **values: float) -> None:
+        for key, value in values.items():
+            self.counters[key] = value
+            self.history[key].append(value)
+
+    def ms_per_step(self, skip: int = 0) -> dict[str, float]:
+        """Median milliseconds per step of each stage, leaving out the first `skip` (warm-up)."""
+        return {name: 1e3 * float(np.median(t[skip:] if len(t) > skip else t))
+                for name, t in self.times.items() if t}
+
+    def table(self, skip: int = 1) -> str:
+        ms = self.ms_per_step(skip)
+        width = max([len(k) for k in ms] + [5])
+        lines = [f"{'stage':<{width}}  ms/step (median)"]
+        lines += [f"{k:<{width}}  {v:10.3f}" for k, v in ms.items()]
+        lines.append(f"{'total':<{width}}  {sum(ms.values()):10.3f}")
+        return "\n".join(lines)
