@@ -22,10 +22,12 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from ..fem import CorotationalFEM
+from ..fem.assembled import AssembledStiffness
 from ..stats import Stats
 
 PRECONDITIONERS = ("none", "jacobi")
 EXECUTIONS = ("auto", "serial", "parallel")
+OPERATORS = ("assembled", "matrix_free")
 
 # Scalar slots of the CG state kept on the device.
 DELTA, DELTA0, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE = range(12)
@@ -58,7 +60,7 @@ class ImplicitEuler:
     def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
                  cg: CGSettings = CGSettings(), fixed=None, execution: str = "auto",
-                 unroll: int = 5):
+                 operator: str = "assembled", unroll: int = 5):
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise TissueError(f"dt: the time step must be a finite number > 0 s, got {dt!r}")
         for name, value in (("rayleigh_mass", rayleigh_mass), ("rayleigh_stiffness", rayleigh_stiffness)):
@@ -66,6 +68,8 @@ class ImplicitEuler:
                 raise TissueError(f"{name}: must be a finite number ≥ 0, got {value!r}")
         if execution not in EXECUTIONS:
             raise TissueError(f"execution: unknown {execution!r}; expected one of {EXECUTIONS}")
+        if operator not in OPERATORS:
+            raise TissueError(f"operator: unknown {operator!r}; expected one of {OPERATORS}")
         if fem.accumulation == "colouring":
             raise TissueError("accumulation: 'colouring' needs one launch per colour and is offered for the "
                               "force/stiffness ablation only; the solver fuses its loops with 'gather' or 'atomic'")
@@ -73,7 +77,10 @@ class ImplicitEuler:
         if execution == "auto":
             execution = "serial" if (be.arch == "cpu" and fem.n_elements < 4000) else "parallel"
         self.fem, self.dt, self.cg = fem, float(dt), cg
-        self.execution, self.unroll = execution, unroll
+        self.execution, self.unroll, self.operator = execution, unroll, operator
+        # "assembled": Σ R Kₑ Rᵀ in block rows once per step; "matrix_free": element by element
+        # in every CG iteration, as the paper does.
+        self.matrix = AssembledStiffness(fem) if operator == "assembled" else None
         self.gravity = tuple(float(g) for g in gravity)
         self.rayleigh_mass, self.rayleigh_stiffness = float(rayleigh_mass), float(rayleigh_stiffness)
         self.stats = Stats()
@@ -142,16 +149,16 @@ class ImplicitEuler:
                 self._begin_parallel()
         with self.stats.stage("cg"):
             if self.execution == "serial":
-                self._solve_serial()
+                report = self._solve_serial()
             else:
                 for _ in range(-(-self.cg.max_iterations // self.unroll)):
                     self._iterate_parallel()
-                self._end_parallel()
-        s = self.scalars.to_numpy()
-        rel = math.sqrt(max(s[RES2], 0.0) / s[RHS2]) if s[RHS2] > 0 else 0.0
-        self.stats.count(cg_iterations=int(s[ITERATION]), cg_residual=rel, cg_breakdown=int(s[BREAKDOWN]))
-        if s[NONFINITE] > 0:
-            raise TissueError(f"the simulation diverged: {int(s[NONFINITE])} nodes have non-finite velocities "
+                report = self._end_parallel()
+        iterations, res2, rhs2, breakdown, nonfinite = (float(c) for c in report)
+        rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
+        self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown))
+        if nonfinite > 0:
+            raise TissueError(f"the simulation diverged: {int(nonfinite)} nodes have non-finite velocities "
                               f"(dt={self.dt}, E={self.fem.material.young}, ν={self.fem.material.poisson}); "
                               "reduce dt or check the material and the constraints")
 
@@ -177,26 +184,49 @@ class ImplicitEuler:
         return z
 
     @ti.func
+    def _stiffness_times(self, v, src):
+        """(Σ R Kₑ Rᵀ src) at node v; matrix-free, `fem.scatter("stiffness", src)` came before."""
+        Kp = ti.Vector([0.0, 0.0, 0.0])
+        if ti.static(self.operator == "assembled"):
+            Kp = self.matrix.product_row(v, src)
+        else:
+            Kp = -self.fem.gathered(v)
+        return Kp
+
+    @ti.func
+    def _stiffness_diagonal(self, v):
+        K = ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.operator == "assembled"):
+            K = self.matrix.diagonal_block(v)
+        else:
+            K = self.fem.stiffness_diagonal(v)
+        return K
+
+    @ti.func
     def _begin(self):
         h, fem = self.dt, self.fem
         mass_factor = 1.0 + h * self.rayleigh_mass
         stiffness_factor = h * self.rayleigh_stiffness + h * h
         g = ti.Vector(self.gravity)
         fem.update_rotations(self.x)
+        if ti.static(self.operator == "assembled"):
+            for v in range(fem.n_nodes):
+                self.matrix.assemble_row(v)
         fem.scatter("force", self.x)
         for v in range(fem.n_nodes):  # the forces f(x, v), kept in r until the right-hand side is complete
             m = fem.mass[v]
             self.r[v] = fem.gathered(v) + m * g - self.rayleigh_mass * m * self.v[v]
-        fem.scatter("stiffness", self.v)
+        if ti.static(self.operator == "matrix_free"):
+            fem.scatter("stiffness", self.v)
         for b in range(self.n_blocks):
             rz, rr = 0.0, 0.0
             for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
-                rhs = h * self.r[v] + stiffness_factor * fem.gathered(v)
+                rhs = h * self.r[v] - stiffness_factor * self._stiffness_times(v, self.v)
                 if self.fixed[v]:
                     rhs = ti.Vector([0.0, 0.0, 0.0])
                 if ti.static(self.cg.preconditioner == "jacobi"):
                     A = mass_factor * fem.mass[v] * ti.Matrix.identity(float, 3) \
-                        + stiffness_factor * fem.stiffness_diagonal(v)
+                        + stiffness_factor * self._stiffness_diagonal(v)
                     self.block_inverse[v] = A.inverse()
                 z = self._preconditioned(v, rhs)
                 self.dv[v] = ti.Vector([0.0, 0.0, 0.0])
@@ -221,14 +251,15 @@ class ImplicitEuler:
         fem = self.fem
         mass_factor = 1.0 + self.dt * self.rayleigh_mass
         stiffness_factor = self.dt * self.rayleigh_stiffness + self.dt * self.dt
-        for e in range(fem.n_elements):  # element stage, skipped once converged
-            if self.scalars[DONE] == 0:
-                fem.scatter_element("stiffness", e, self.p)
+        if ti.static(self.operator == "matrix_free"):
+            for e in range(fem.n_elements):  # element stage, skipped once converged
+                if self.scalars[DONE] == 0:
+                    fem.scatter_element("stiffness", e, self.p)
         for b in range(self.n_blocks):  # q = A p (filtered), and pᵀq
             pq = 0.0
             if self.scalars[DONE] == 0:
                 for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
-                    qv = mass_factor * fem.mass[v] * self.p[v] - stiffness_factor * fem.gathered(v)
+                    qv = mass_factor * fem.mass[v] * self.p[v] + stiffness_factor * self._stiffness_times(v, self.p)
                     if self.fixed[v]:
                         qv = ti.Vector([0.0, 0.0, 0.0])
                     self.q[v] = qv
@@ -249,7 +280,7 @@ class ImplicitEuler:
             if self.scalars[DONE] == 0:
                 alpha = self.scalars[ALPHA]
                 for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
-                    self.dv[v] += alpha * self.p[v]
+                    self.dv[v] = self.dv[v] + alpha * self.p[v]  # rows are owned: no atomics
                     r = self.r[v] - alpha * self.q[v]
                     z = self._preconditioned(v, r)
                     self.r[v] = r
@@ -282,7 +313,7 @@ class ImplicitEuler:
                 if not (vel.norm_sqr() < 1e300):  # NaN or inf
                     bad += 1.0
                 self.v[v] = vel
-                self.x[v] += h * vel
+                self.x[v] = self.x[v] + h * vel
                 rr += self.r[v].dot(self.r[v])
             self.partial[0, b] = rr
             self.partial[1, b] = bad
@@ -299,9 +330,15 @@ class ImplicitEuler:
         for _ in ti.static(range(self.unroll)):
             self._iteration()
 
+    @ti.func
+    def _report(self):
+        return ti.Vector([self.scalars[ITERATION], self.scalars[RES2], self.scalars[RHS2],
+                          self.scalars[BREAKDOWN], self.scalars[NONFINITE]])
+
     @ti.kernel
-    def _end_parallel(self):
+    def _end_parallel(self) -> ti.types.vector(5, float):
         self._end()
+        return self._report()
 
     @ti.kernel
     def _begin_serial(self):
@@ -310,9 +347,10 @@ class ImplicitEuler:
             self._begin()
 
     @ti.kernel
-    def _solve_serial(self):
+    def _solve_serial(self) -> ti.types.vector(5, float):
         ti.loop_config(serialize=True)
         for _ in range(1):
             while self.scalars[DONE] == 0:
                 self._iteration()
             self._end()
+        return self._report()
