@@ -313,8 +313,14 @@ class CorotationalFEM:
         for v in out:
             out[v] = self.gathered(v)
 
-    def _vector_field(self, values: np.ndarray):
-        f = ti.Vector.field(3, self.R.dtype, self.n_nodes)
+    def _vector_field(self, values: np.ndarray, slot: int = 0):
+        """One of two nodal fields kept for the standalone launches, filled with `values`.
+
+        Reused from call to call: a new field per call would be a new template argument, so every
+        call would compile its kernels again (and the fields would never be freed)."""
+        if not hasattr(self, "_io_fields"):
+            self._io_fields = [ti.Vector.field(3, self.R.dtype, self.n_nodes) for _ in range(2)]
+        f = self._io_fields[slot]
         f.from_numpy(np.asarray(values, dtype=np.float64 if self.R.dtype == ti.f64 else np.float32))
         return f
 
@@ -328,7 +334,7 @@ class CorotationalFEM:
         x = self._vector_field(positions)
         if update_rotations:
             self._rotations_kernel(x)
-        out = self._vector_field(np.zeros((self.n_nodes, 3)))
+        out = self._vector_field(np.zeros((self.n_nodes, 3)), slot=1)
         self.scatter_launch("force", x)
         self._gather_kernel(out)
         return out.to_numpy()
@@ -336,7 +342,7 @@ class CorotationalFEM:
     def stiffness_product_numpy(self, vectors: np.ndarray) -> np.ndarray:
         """(-Σ R Kₑ Rᵀ) p with the current rotations."""
         p = self._vector_field(vectors)
-        out = self._vector_field(np.zeros((self.n_nodes, 3)))
+        out = self._vector_field(np.zeros((self.n_nodes, 3)), slot=1)
         self.scatter_launch("stiffness", p)
         self._gather_kernel(out)
         return out.to_numpy()
@@ -353,6 +359,7 @@ class CorotationalFEM:
 
     def element_stress_numpy(self, positions: np.ndarray) -> np.ndarray:
         """Co-rotational stress R σ Rᵀ of each element (m, 3, 3) at the given positions."""
-        out = ti.Matrix.field(3, 3, self.R.dtype, self.n_elements)
-        self._stress_kernel(self._vector_field(positions), out)
-        return out.to_numpy()
+        if not hasattr(self, "_stress_field"):
+            self._stress_field = ti.Matrix.field(3, 3, self.R.dtype, self.n_elements)
+        self._stress_kernel(self._vector_field(positions), self._stress_field)
+        return self._stress_field.to_numpy()
