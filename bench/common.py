@@ -1,0 +1,76 @@
+"""What every benchmark shares: the machine record, a fair clock, and the JSON output."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "bench" / "results"
+FIGURES = ROOT / "figures"
+
+
+def machine() -> dict:
+    """Machine, backend and commit, printed and stored with every result."""
+    import taichi as ti
+
+    from tissue import backend
+
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                                text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                               capture_output=True, text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    be = backend.current()
+    return {"cpu": cpu, "cores": os.cpu_count(), "arch": be.arch, "precision": be.precision,
+            "taichi": ti.__version__, "commit": commit,
+            "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+
+
+def print_machine(info: dict) -> None:
+    print(f"# {info['cpu']} ({info['cores']} cores) · arch {info['arch']} · {info['precision']} · "
+          f"taichi {info['taichi']} · commit {info['commit']} · {info['date']}")
+
+
+def time_steps(step, steps: int, warmup: int = 3) -> dict:
+    """Median and spread of the wall time of `step()` (after ti.sync), warm-up excluded."""
+    import taichi as ti
+
+    for _ in range(warmup):
+        step()
+    samples = []
+    for _ in range(steps):
+        ti.sync()
+        start = time.perf_counter()
+        step()
+        ti.sync()
+        samples.append(time.perf_counter() - start)
+    s = np.array(samples) * 1e3
+    return {"median_ms": float(np.median(s)), "min_ms": float(s.min()), "p90_ms": float(np.percentile(s, 90)),
+            "samples": len(s)}
+
+
+def write_results(name: str, data: dict) -> Path:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(data, indent=2))
+    print(f"# wrote {path.relative_to(ROOT)}")
+    return path
