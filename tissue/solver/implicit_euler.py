@@ -28,6 +28,9 @@ from ..stats import Stats
 PRECONDITIONERS = ("none", "jacobi")
 EXECUTIONS = ("auto", "serial", "parallel")
 OPERATORS = ("assembled", "matrix_free")
+# On the CPU a single thread beats two below this many elements: each parallel loop costs a
+# thread-pool dispatch, and a CG iteration has five of them (bench/deformation.py measures it).
+SERIAL_BELOW = 30_000
 
 # Scalar slots of the CG state kept on the device.
 DELTA, DELTA0, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE = range(12)
@@ -75,7 +78,7 @@ class ImplicitEuler:
                               "force/stiffness ablation only; the solver fuses its loops with 'gather' or 'atomic'")
         be = backend.current()
         if execution == "auto":
-            execution = "serial" if (be.arch == "cpu" and fem.n_elements < 4000) else "parallel"
+            execution = "serial" if (be.arch == "cpu" and fem.n_elements < SERIAL_BELOW) else "parallel"
         self.fem, self.dt, self.cg = fem, float(dt), cg
         self.execution, self.unroll, self.operator = execution, unroll, operator
         # "assembled": Σ R Kₑ Rᵀ in block rows once per step; "matrix_free": element by element
