@@ -297,11 +297,12 @@ class Renderer:
                     shadow=False, bold=False, unconstrained_font_size=True)
 
     def _text(self, text, position, name, size, centred=False) -> None:
-        self.plotter.remove_actor(name)
+        # render=False: each text change would otherwise cost two full renders (a GIF frame's label).
+        self.plotter.remove_actor(name, render=False)
         if text:
             # Pixel positions (not pyvista's corner annotations, whose size follows the window).
             actor = self.plotter.add_text(text, position=position, font_size=size, color="black",
-                                          font="arial", name=name)
+                                          font="arial", name=name, render=False)
             if centred:
                 actor.prop.justification_horizontal = "center"
                 actor.prop.justification_vertical = "top"
