@@ -1,6 +1,23 @@
-"""Contact layer: the frictional contact (Coulomb cone) solver."""
+"""Contact layer (paper §3): detection, the constraint Jacobian in JDS, compliance (warped or
+exact), the frictional contact solver, and the stage that ties them after the free motion.
 
+    obstacles.py           rigid obstacles: plane, sphere, capsule, box, triangle mesh; prescribed motion
+    detection.py           proximity of surface points to obstacles and to other soft bodies
+    constraints.py         H (normal, two tangents per contact; attachments) and its JDS storage
+    compliance.py          W = Σ h (H R) A₀⁻¹ (H R)ᵀ by warping, or h H A⁻¹ Hᵀ exactly; the correction
+    frictional_contact.py  Coulomb friction by projected block Gauss-Seidel
+    pipeline.py            ContactStage: detection → H → W → LCP → correction, timed
+    layer.py               Contact / Obstacle scene options and the Simulation stage
+"""
+
+from .constraints import Attachment
+from .detection import Contacts, Detector
 from .frictional_contact import (ContactInfo, FrictionalContactSolver, natural_map_residual,
                                  solve_frictional_contact)
+from .layer import Contact, ContactLayer, Obstacle
+from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh
+from .pipeline import ContactBody, ContactResult, ContactSettings, ContactStage
 
-__all__ = ["ContactInfo", "FrictionalContactSolver", "natural_map_residual", "solve_frictional_contact"]
+__all__ = ["Attachment", "Box", "Capsule", "Contact", "ContactBody", "ContactInfo", "ContactLayer", "ContactResult",
+           "ContactSettings", "ContactStage", "Contacts", "Detector", "FrictionalContactSolver", "Obstacle", "Plane",
+           "RigidObstacle", "Sphere", "TriangleMesh", "natural_map_residual", "solve_frictional_contact"]

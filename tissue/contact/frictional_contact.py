@@ -36,7 +36,9 @@ Methods:
 
 W is held on the device either dense (row-major) or, for a large sparse W, as 3x3 blocks in
 block-CSR. Taichi ndarrays are used rather than fields so that problems of any size reuse the same
-compiled kernels and are freed with the solver. Reactions are accumulated in the backend's float
+compiled kernels and are freed with the solver; on the CPU plain numpy arrays take their place
+(kernels read and write them in place), since allocating and filling a Taichi ndarray costs
+about a millisecond, more than a whole solve of a hundred contacts. Reactions are accumulated in the backend's float
 type (with float32, tolerances much below 1e-6 are out of reach).
 """
 
@@ -76,7 +78,8 @@ class ContactInfo:
 def project_cone(x: np.ndarray, mu: np.ndarray) -> np.ndarray:
     """Projection of each row (x_n, x_t1, x_t2) of x (n, 3) on K_mu (closed form)."""
     xn, nt = x[:, 0], np.linalg.norm(x[:, 1:], axis=1)
-    inside, polar = nt <= mu * xn, mu * nt <= -xn
+    # xn >= 0 matters when mu = 0 and nt = 0: a point on the negative normal axis is not in K_0.
+    inside, polar = (nt <= mu * xn) & (xn >= 0), mu * nt <= -xn
     a = (xn + mu * nt) / (1.0 + mu * mu)
     scale = np.divide(mu * a, nt, out=np.zeros_like(a), where=nt > 0)
     p = np.column_stack([a, scale[:, None] * x[:, 1:]])
@@ -180,7 +183,7 @@ def _contact_error2(r, u, mu):
     x[0] -= mu * ut
     xn, nt = x[0], ti.Vector([x[1], x[2]]).norm()
     p = ti.Vector([0.0, 0.0, 0.0])
-    if nt <= mu * xn:
+    if nt <= mu * xn and xn >= 0.0:                # (xn >= 0: for mu = 0, nt = 0)
         p = x
     elif mu * nt > -xn:                             # neither inside K nor in its polar cone
         a = (xn + mu * nt) / (1.0 + mu * mu)
@@ -352,6 +355,27 @@ def _finite(name, a):
         raise TissueError(f"{name}: contains non-finite entries (nan or inf)")
 
 
+class _HostArray(np.ndarray):
+    """A numpy array with the Taichi ndarray methods used here (CPU only: no copies)."""
+
+    def from_numpy(self, a):
+        self[...] = a
+
+    def to_numpy(self):
+        return np.array(self)
+
+    def copy_from(self, other):
+        self[...] = other
+
+
+def _array(shape, dtype):
+    """A zeroed kernel argument: numpy on the CPU, a Taichi ndarray elsewhere."""
+    if backend.current().arch == "cpu":
+        npt = np.int32 if dtype == ti.i32 else (np.float64 if dtype == ti.f64 else np.float32)
+        return np.zeros(shape, dtype=npt).view(_HostArray)
+    return ti.ndarray(dtype=dtype, shape=shape)
+
+
 def _diagonal_blocks(W, n):
     if sp.issparse(W):
         B = sp.bsr_matrix(W, blocksize=(3, 3))
@@ -430,6 +454,8 @@ class FrictionalContactSolver:
 
         def nd(a, dtype=real):
             a = np.ascontiguousarray(a, dtype=npr if dtype == real else np.int32)
+            if backend.current().arch == "cpu":
+                return a.view(_HostArray)
             arr = ti.ndarray(dtype=dtype, shape=a.shape)
             arr.from_numpy(a)
             return arr
@@ -437,8 +463,8 @@ class FrictionalContactSolver:
         self._npr = npr
         m = 3 * self.n
         self._Wd, self._mu = nd(D), nd(self.mu)
-        self._q, self._r, self._u = (ti.ndarray(dtype=real, shape=(m,)) for _ in range(3))
-        self._stats = ti.ndarray(dtype=real, shape=(2,))
+        self._q, self._r, self._u = (_array((m,), real) for _ in range(3))
+        self._stats = _array((2,), real)
         if self.dense:
             W = self.W.toarray() if sp.issparse(self.W) else self.W
             self._W = nd(W)
@@ -491,7 +517,7 @@ class FrictionalContactSolver:
         omega, best = self.omega, np.inf
         matvec = (lambda: _matvec_dense(self._W, self._q, self._r, self._u)) if self.dense else (
             lambda: _matvec_csr(*self._csr, self._q, self._r, self._u))
-        r_best = ti.ndarray(dtype=backend.current().real, shape=(3 * self.n,))
+        r_best = _array((3 * self.n,), backend.current().real)
         it = stalled = 0
         while True:
             matvec()

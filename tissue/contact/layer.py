@@ -1,0 +1,171 @@
+"""The contact layer as a scene declares it: the `Contact` and `Obstacle` option groups, and the
+stage the Simulation runs right after the free motion (registered on import).
+
+    @dataclass
+    class Press(Scene):
+        liver: SoftBody = ...
+        floor: Obstacle = field(default_factory=lambda: Obstacle(shape="plane", centre=(0, 0, -0.05)))
+        probe: Obstacle = field(default_factory=lambda: Obstacle(
+            shape="sphere", radius=0.01, keyframes=(0, 0, 0, 0, 1, 0, 0, -0.02)))
+        contact: Contact = field(default_factory=lambda: Contact(friction=0.3))
+
+Every soft body of the scene takes part; every `Obstacle` field is a rigid obstacle, named by its
+field. A scene with obstacles must declare a `Contact` (the settings live there, and a scene
+without contact builds nothing of this layer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ..errors import TissueError
+from ..options import Options, require
+from ..scene import add_stage, rotation_matrix
+from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh
+from .pipeline import ContactBody, ContactSettings, ContactStage
+
+
+@dataclass
+class Contact(Options):
+    """Contact and Coulomb friction between every soft body and obstacle (tissue.contact.pipeline).
+
+    distance: alarm distance (m); compliance: 'warped' (precomputed A₀⁻¹ and nodal rotations, the
+    paper's) or 'exact' (a sparse LU per step); tolerance (m) and max_iterations: the Gauss-Seidel
+    stopping rule; sampling: the contact points of each surface ('vertices'; 'edges' and 'faces'
+    add edge midpoints and centroids, for obstacles thinner than the mesh spacing).
+    """
+
+    friction: float = 0.3
+    distance: float = 3e-3
+    compliance: Literal["warped", "exact"] = "warped"
+    tolerance: float = 1e-6
+    max_iterations: int = 100
+    soft_soft: bool = True
+    sampling: Literal["vertices", "edges", "faces"] = "vertices"
+
+    def check(self):
+        require(self.friction >= 0, "friction", f"must be >= 0, got {self.friction}")
+        require(self.distance > 0, "distance", f"must be > 0 m, got {self.distance}")
+        require(self.tolerance > 0, "tolerance", f"must be > 0 m, got {self.tolerance}")
+        require(self.max_iterations >= 1, "max_iterations", f"must be >= 1, got {self.max_iterations}")
+
+    def settings(self) -> ContactSettings:
+        return ContactSettings(friction=self.friction, contact_distance=self.distance, compliance=self.compliance,
+                               tolerance=self.tolerance, max_iterations=self.max_iterations,
+                               soft_soft=self.soft_soft, sampling=self.sampling)
+
+
+@dataclass
+class Obstacle(Options):
+    """A rigid obstacle of one kind of shape (tissue.contact.obstacles), in the world frame.
+
+    plane     through `centre`, outward `normal` (the solid is below it)
+    sphere    `centre`, `radius`
+    capsules  `segments` = (ax, ay, az, bx, by, bz) per capsule, all of `radius` (ribs)
+    box       `centre`, half-extents `half`, turned by `orientation`
+    mesh      the closed surface file `path`, turned by `orientation` then moved by `centre`
+    Motion: `keyframes` = (t, dx, dy, dz) per key, a translation interpolated linearly in time and
+    held before the first key and after the last (none: the obstacle stays put).
+    friction: its own Coulomb coefficient (None: the Contact's).
+    """
+
+    shape: Literal["plane", "sphere", "capsules", "box", "mesh"] = "plane"
+    centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    radius: float = 0.01
+    half: tuple[float, float, float] = (0.05, 0.05, 0.05)
+    orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    segments: tuple[float, ...] = ()
+    path: str = ""
+    keyframes: tuple[float, ...] = ()
+    friction: float | None = None
+
+    def check(self):
+        require(self.radius > 0, "radius", f"must be > 0 m, got {self.radius}")
+        require(all(h > 0 for h in self.half), "half", f"half-extents must be > 0 m, got {self.half}")
+        require(any(self.normal), "normal", "must be non-zero")
+        require(len(self.segments) % 6 == 0, "segments",
+                f"expected 6 numbers (a, b) per capsule, got {len(self.segments)}")
+        require(self.shape != "capsules" or self.segments, "segments", "a 'capsules' obstacle needs segments")
+        require(self.shape != "mesh" or self.path, "path", "a 'mesh' obstacle needs a surface file")
+        require(len(self.keyframes) % 4 == 0, "keyframes",
+                f"expected 4 numbers (t, dx, dy, dz) per key, got {len(self.keyframes)}")
+        times = self.keyframes[::4]
+        require(all(b > a for a, b in zip(times, times[1:])), "keyframes", f"times must increase, got {times}")
+        require(self.friction is None or self.friction >= 0, "friction", f"must be >= 0, got {self.friction}")
+
+    def shapes(self) -> list:
+        R = rotation_matrix(self.orientation)
+        if self.shape == "plane":
+            return [Plane(self.centre, self.normal)]
+        if self.shape == "sphere":
+            return [Sphere(self.centre, self.radius)]
+        if self.shape == "capsules":
+            s = np.asarray(self.segments, dtype=np.float64).reshape(-1, 6)
+            return [Capsule(tuple(a), tuple(b), self.radius) for a, b in zip(s[:, :3], s[:, 3:])]
+        if self.shape == "box":
+            return [Box(self.centre, self.half, R)]
+        from ..mesh.tetrahedralize import read_surface
+
+        points, triangles = read_surface(self.path)
+        return [TriangleMesh(points @ R.T + self.centre, triangles)]
+
+    def motion(self):
+        """time -> translation, or None for a static obstacle."""
+        if not self.keyframes:
+            return None
+        k = np.asarray(self.keyframes, dtype=np.float64).reshape(-1, 4)
+        return lambda t: np.array([np.interp(t, k[:, 0], k[:, 1 + i]) for i in range(3)])
+
+    def build(self, name: str) -> RigidObstacle:
+        try:
+            return RigidObstacle(self.shapes(), motion=self.motion(), friction=self.friction, name=name)
+        except TissueError as err:
+            raise TissueError(f"{name}: {err}") from None
+
+
+class ContactLayer:
+    """Steps 2-5 of the data flow (detection, constraints, compliance, LCP, correction)."""
+
+    name = "contact"
+
+    def __init__(self, sim, settings: Contact, obstacles: dict[str, Obstacle]):
+        self.obstacles = {name: spec.build(name) for name, spec in obstacles.items()}
+        bodies = [ContactBody(b.solver, b.faces) for b in sim.bodies.values()]
+        self.stage = ContactStage(bodies, list(self.obstacles.values()), settings.settings())
+
+    def step(self, sim) -> None:
+        self.stage.step(time=sim.time + sim.dt)
+
+    def report(self) -> tuple[dict[str, float], dict[str, float]]:
+        """Seconds of the last step by sub-stage, and the counters (contacts, rows, GS iterations
+        and residual, penetration)."""
+        stats = self.stage.stats
+        return {k: v[-1] for k, v in stats.times.items() if v}, dict(stats.counters)
+
+    def obstacle_transform(self, name: str, time: float) -> np.ndarray:
+        """4×4 pose of an obstacle at `time` (for drawing its `surface()`)."""
+        R, t = self.obstacles[name].pose(time)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return T
+
+
+def contact(sim) -> ContactLayer | None:
+    """The stage builder: a ContactLayer when the scene declares contact (None otherwise)."""
+    declared = sim.scene.parts(Contact)
+    obstacles = sim.scene.parts(Obstacle)
+    if not declared:
+        if obstacles:
+            raise TissueError(f"{next(iter(obstacles))}: an obstacle needs contact; declare a field of type "
+                              "Contact (tissue.contact.Contact) in the scene")
+        return None
+    if len(declared) > 1:
+        raise TissueError(f"{', '.join(declared)}: a scene declares at most one Contact")
+    return ContactLayer(sim, next(iter(declared.values())), obstacles)
+
+
+add_stage(contact, after="free_motion")
