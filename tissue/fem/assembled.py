@@ -13,7 +13,7 @@ so there are no write conflicts and the order is fixed (deterministic).
 import numpy as np
 import taichi as ti
 
-from .corotational import CorotationalFEM
+from .corotational import CorotationalFEM, int_field
 
 
 def block_pattern(tets: np.ndarray, n_points: int, incidence: np.ndarray):
@@ -43,10 +43,10 @@ class AssembledStiffness:
             fem.mesh.tets, n, fem.incidence.to_numpy())
         real = fem.R.dtype
         self.n_blocks = len(columns)
-        self.row_offsets = ti.field(ti.i32, n + 1)
-        self.columns = ti.field(ti.i32, self.n_blocks)
-        self.slots = ti.Vector.field(4, ti.i32, len(slots))
-        self.diagonal_slot = ti.field(ti.i32, n)
+        self.row_offsets = int_field(n + 1)
+        self.columns = int_field(self.n_blocks)
+        self.slots = int_field(len(slots), 4)
+        self.diagonal_slot = int_field(n)
         self.blocks = ti.Matrix.field(3, 3, real, self.n_blocks)
         self.row_offsets.from_numpy(offsets)
         self.columns.from_numpy(columns)

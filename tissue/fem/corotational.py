@@ -26,6 +26,20 @@ ROTATIONS = ("large", "polar", "linear")
 ACCUMULATIONS = ("gather", "atomic", "colouring")
 
 
+def int_field(shape, n: int = 0):
+    """An i32 field (a vector field of n components when n > 0) that leaves the next field 8-byte
+    aligned: an odd number of 4-byte entries is followed by a 4-byte pad field.
+
+    Taichi's gfx backends (Vulkan) pack root fields with no padding and address a 64-bit field that
+    lands at an offset of 4 mod 8 one slot too low, silently overwriting the last entry of the field
+    before it (taichi-dev/taichi#8803): e.g. the last node's `fixed` flag when the mesh has an odd
+    number of nodes."""
+    field = ti.Vector.field(n, ti.i32, shape) if n else ti.field(ti.i32, shape)
+    if (int(np.prod(shape)) * max(n, 1)) % 2:
+        ti.field(ti.i32, ())
+    return field
+
+
 def vertex_incidence(tets: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR index vertex -> (4 e + corner) of its incident element corners, sorted by element."""
     corners = np.arange(tets.size, dtype=np.int32)
@@ -65,27 +79,27 @@ def edge_frame(a, b, c):
 def polar_rotation(F, tol):
     """Rotation of the polar decomposition F = R S by Higham's scaled Newton iteration.
 
-    An inverted element (det F < 0) gets the closest proper rotation: the orthogonal factor is
-    reflected along the eigenvector of S with the smallest eigenvalue (as in Irving et al. 2004).
+    The scaling ζ = sqrt(‖X⁻¹‖/‖X‖) (Frobenius) needs only a square root, which every backend has
+    in float64 (Vulkan's GLSL has no 64-bit pow, exp or trigonometry). An inverted element
+    (det F < 0) gets the closest proper rotation: the orthogonal factor is reflected along the
+    eigenvector of S with the smallest eigenvalue (Irving et al. 2004), found by inverse iteration
+    (S is symmetric positive definite there).
     """
     X = F
     for _ in range(30):
-        det = X.determinant()
-        zeta = ti.abs(det) ** (-1.0 / 3.0)
-        Y = 0.5 * (zeta * X + X.inverse().transpose() / zeta)
+        Xinv_t = X.inverse().transpose()
+        zeta = ti.sqrt(Xinv_t.norm() / X.norm())
+        Y = 0.5 * (zeta * X + Xinv_t / zeta)
         change = (Y - X).norm()
         X = Y
         if change <= tol:
             break
     if F.determinant() < 0:
         S = X.transpose() @ F
-        S = 0.5 * (S + S.transpose())
-        eigenvalues, V = ti.sym_eig(S)
-        k = 0
-        for i in ti.static(range(1, 3)):
-            if eigenvalues[i] < eigenvalues[k]:
-                k = i
-        v = ti.Vector([V[0, k], V[1, k], V[2, k]])
+        S_inv = (0.5 * (S + S.transpose())).inverse()
+        v = ti.Vector([0.8, 0.5, 0.33]).normalized()
+        for _ in range(100):
+            v = (S_inv @ v).normalized()
         X = X @ (ti.Matrix.identity(float, 3) - 2.0 * v.outer_product(v))
     return X
 
@@ -115,7 +129,7 @@ class CorotationalFEM:
         X = mesh.points
         Dm = np.stack([X[mesh.tets[:, i]] - X[mesh.tets[:, 0]] for i in (1, 2, 3)], axis=2)
         lam, mu = material.lame
-        self.tets = ti.Vector.field(4, ti.i32, m)
+        self.tets = int_field(m, 4)
         self.rest = ti.Vector.field(3, real, n)
         self.Dm_inv = ti.Matrix.field(3, 3, real, m)
         self.rest_frame = ti.Matrix.field(3, 3, real, m)
@@ -137,8 +151,8 @@ class CorotationalFEM:
 
         # The vertex -> element-corner index serves the gather and the diagonal blocks.
         offsets, corners = vertex_incidence(mesh.tets, n)
-        self.incidence_offsets = ti.field(ti.i32, n + 1)
-        self.incidence = ti.field(ti.i32, 4 * m)
+        self.incidence_offsets = int_field(n + 1)
+        self.incidence = int_field(4 * m)
         self.incidence_offsets.from_numpy(offsets)
         self.incidence.from_numpy(corners)
         # Accumulation structures: only those of the chosen method are allocated.
@@ -150,7 +164,7 @@ class CorotationalFEM:
             colours = colour_elements(mesh.tets, n)
             self.n_colours = len(colours)
             self.colour_offsets = [0] + [int(k) for k in np.cumsum([len(c) for c in colours])]
-            self.colour_order = ti.field(ti.i32, m)
+            self.colour_order = int_field(m)
             self.colour_order.from_numpy(np.concatenate(colours))
 
     @ti.kernel

@@ -23,6 +23,7 @@ from .. import backend
 from ..errors import TissueError
 from ..fem import CorotationalFEM
 from ..fem.assembled import AssembledStiffness
+from ..fem.corotational import int_field
 from ..stats import Stats
 
 PRECONDITIONERS = ("none", "jacobi")
@@ -77,6 +78,9 @@ class ImplicitEuler:
             raise TissueError("accumulation: 'colouring' needs one launch per colour and is offered for the "
                               "force/stiffness ablation only; the solver fuses its loops with 'gather' or 'atomic'")
         be = backend.current()
+        if execution == "serial" and be.arch != "cpu":
+            raise TissueError(f"execution: 'serial' runs the CG in one CPU thread; on {be.arch} use "
+                              "'parallel' or 'auto'")
         if execution == "auto":
             execution = "serial" if (be.arch == "cpu" and fem.n_elements < SERIAL_BELOW) else "parallel"
         self.fem, self.dt, self.cg = fem, float(dt), cg
@@ -96,7 +100,7 @@ class ImplicitEuler:
         self.z = ti.Vector.field(3, real, n)
         self.p = ti.Vector.field(3, real, n)
         self.q = ti.Vector.field(3, real, n)
-        self.fixed = ti.field(ti.i32, n)
+        self.fixed = int_field(n)
         self.scalars = ti.field(real, 12)
         self.block = 1024 if be.arch == "cpu" else 32
         self.n_blocks = (n + self.block - 1) // self.block
@@ -160,8 +164,12 @@ class ImplicitEuler:
         iterations, res2, rhs2, breakdown, nonfinite = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown))
-        if nonfinite > 0:
-            raise TissueError(f"the simulation diverged: {int(nonfinite)} nodes have non-finite velocities "
+        # A non-finite right-hand side (NaN positions, or NaN velocities at fixed nodes) stops the CG
+        # at once with dv = 0, so the velocities alone would not show it.
+        if nonfinite > 0 or not (math.isfinite(rhs2) and math.isfinite(res2)):
+            what = (f"{int(nonfinite)} nodes have non-finite velocities" if nonfinite > 0
+                    else "the forces are not finite (non-finite positions or velocities)")
+            raise TissueError(f"the simulation diverged: {what} "
                               f"(dt={self.dt}, E={self.fem.material.young}, ν={self.fem.material.poisson}); "
                               "reduce dt or check the material and the constraints")
 
