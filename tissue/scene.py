@@ -161,7 +161,10 @@ class SoftBody(Options):
 
 @dataclass
 class Solver(Options):
-    """Implicit Euler with matrix-free CG (`tissue.solver.ImplicitEuler`), shared by all bodies."""
+    """Implicit Euler solved by CG (`tissue.solver.ImplicitEuler`), shared by all bodies.
+
+    operator: 'assembled' forms Σ R Kₑ Rᵀ in block rows once per step; 'matrix_free' recomputes
+    it element by element in every CG iteration, as the paper does."""
 
     cg_iterations: int = 25
     cg_tolerance: float = 1e-9
@@ -170,6 +173,7 @@ class Solver(Options):
     rayleigh_stiffness: float = 0.1     # damping: alpha_K (s)
     accumulation: Literal["gather", "atomic"] = "gather"
     execution: Literal["auto", "serial", "parallel"] = "auto"
+    operator: Literal["assembled", "matrix_free"] = "assembled"
 
     def check(self):
         require(self.cg_iterations >= 1, "cg_iterations", f"must be >= 1, got {self.cg_iterations}")
@@ -392,7 +396,7 @@ class Body:
                 rayleigh_stiffness=s.rayleigh_stiffness,
                 cg=CGSettings(max_iterations=s.cg_iterations, tolerance=s.cg_tolerance,
                               preconditioner=s.preconditioner),
-                fixed=self.fixed, execution=s.execution)
+                fixed=self.fixed, execution=s.execution, operator=s.operator)
         except TissueError as err:
             raise TissueError(f"{name}: {err}") from None
         self._stress = None
