@@ -1,0 +1,282 @@
+"""Stability on stiff and extreme cases: does every cell stay bounded, or get refused clearly?
+
+    python -m bench.stability [--quick] [--scheduler tcp://host:port] [--workers 2]
+
+The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
+1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, CG 25 iterations (SOFA's defaults),
+each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"). Cells:
+  material   E 1e2 … 1e8 Pa × ν 0 … 0.499 × dt 1e-3 … 0.5 s, from rest, for max(20, 1 s / dt)
+             steps (at most 1,000). The self-weight strain ρ g L / E is 9.8 at 1e2 Pa, 0.98 at
+             1e3 Pa, 0.098 at 1e4 Pa: the soft end is far outside small strain on purpose;
+  twist      both ends clamped, the far end turned 180° about the axis: smoothly along the beam,
+             or abruptly (only the end face turned);
+  inverted   initial positions that invert elements: one node pushed out through the body, or the
+             free half mirrored (z → −z: the same shape, every element inside out);
+  impact     a large initial velocity: 10 m/s uniform, or a random field of 5 m/s per node;
+  jerk       the clamped end displaced by half the length in one step;
+the special cells with E = 1e4 Pa, ν = 0.45, dt = 0.04 s for 250 steps (10 s).
+Each cell ends as
+  bounded    finite; total energy (kinetic + co-rotational elastic, measured with the polar
+             rotation, + gravity) ends no higher than it started (+10 % of the energy scale) and
+             never overshoots by more than 100× that scale; no element inverted at the end;
+  refused    a TissueError with its message (e.g. "the simulation diverged ...");
+  unbounded  finite but energy gained or elements left inverted (a failure, reported);
+  silent-nan non-finite state without an error (must never happen).
+The energy scale is max(|E₀|, E₀ − min E, m g L). Writes bench/results/stability.json and the
+tables as markdown (bench/results/stability.md).
+
+TODO once the contact layer (tissue/contact) is in the scene: contact cells, each bounded or
+refused like the others:
+  - friction μ = 0, 0.1, 0.5, 1, 10 (stick and slip) against a rigid floor and a rigid obstacle;
+  - more than 2,000 contact constraints at once (the soft body pressed flat onto the floor);
+  - the fast impact into the floor (the large initial velocity above, with contact);
+  - the jerk of the clamped end while in frictional contact.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+
+from .cluster import add_arguments, client, record, run_cells, worker_backend
+
+ROTATIONS = ("large", "polar")
+YOUNG = (1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8)
+POISSON = (0.0, 0.3, 0.45, 0.49, 0.499)
+STEPS = (1e-3, 1e-2, 0.04, 0.1, 0.5)
+QUICK = dict(young=(1e2, 1e4, 1e6, 1e8), poisson=(0.0, 0.45, 0.499), dt=(1e-3, 0.04, 0.5))
+LENGTH, WIDTH, CELLS = 0.1, 0.02, (10, 2)
+TISSUE = dict(young=1e4, poisson=0.45)      # material of the special cells
+GRAVITY = (0.0, 0.0, -9.81)
+
+
+def material_cells(young=YOUNG, poisson=POISSON, dt=STEPS, rotations=ROTATIONS) -> list[dict]:
+    return [dict(case="material", young=E, poisson=nu, dt=h, rotation=r)
+            for r in rotations for h in dt for E in young for nu in poisson]
+
+
+def special_cells(rotations=ROTATIONS) -> list[dict]:
+    modes = [("twist", "smooth"), ("twist", "abrupt"), ("inverted", "node"), ("inverted", "mirror"),
+             ("impact", "uniform"), ("impact", "random"), ("jerk", "half-length")]
+    return [dict(case=c, mode=m, dt=0.04, steps=250, rotation=r) for r in rotations for c, m in modes]
+
+
+# ---- scenes ----------------------------------------------------------------------------------
+
+def _mesh():
+    from tissue.mesh import beam
+
+    return beam(LENGTH, WIDTH, WIDTH, CELLS[0], CELLS[1])
+
+
+def initial_state(cell: dict, mesh):
+    """(positions, velocities, fixed nodes) of a cell."""
+    X = mesh.points
+    x, v = X.copy(), np.zeros_like(X)
+    clamp = np.flatnonzero(X[:, 0] <= 1e-9)
+    far = np.flatnonzero(X[:, 0] >= LENGTH - 1e-9)
+    fixed = clamp
+    case, mode = cell["case"], cell.get("mode")
+    if case == "twist":
+        fixed = np.concatenate([clamp, far])
+        angle = np.pi * (X[:, 0] / LENGTH if mode == "smooth" else (X[:, 0] >= LENGTH - 1e-9))
+        c, s = np.cos(angle), np.sin(angle)
+        x[:, 1], x[:, 2] = c * X[:, 1] - s * X[:, 2], s * X[:, 1] + c * X[:, 2]
+    elif case == "inverted" and mode == "node":
+        k = np.argmin(np.linalg.norm(X - [LENGTH / 2, 0, 0], axis=1))   # the centre node, pushed
+        x[k, 2] += 1.5 * WIDTH                                           # out through the top face
+    elif case == "inverted":
+        half = X[:, 0] > LENGTH / 2 + 1e-9
+        x[half, 2] *= -1.0
+    elif case == "impact" and mode == "uniform":
+        v[:, 2] = -10.0
+    elif case == "impact":
+        v = np.random.default_rng(0).normal(0.0, 5.0, X.shape)
+    elif case == "jerk":
+        x[clamp, 1] += LENGTH / 2
+    v[fixed] = 0.0
+    return x, v, fixed
+
+
+_solvers: dict = {}
+
+
+def solver_for(cell: dict, mesh, material):
+    """An ImplicitEuler for the cell. dt, gravity, damping and CG settings are compiled into the
+    kernels, the material is not: solvers are kept per worker and re-used across cells that differ
+    only in material and state (a Taichi compile costs seconds, a cell a fraction of that)."""
+    from tissue import backend
+    from tissue.fem import CorotationalFEM
+    from tissue.solver import CGSettings, ImplicitEuler
+    from tissue.stats import Stats
+
+    key = (cell["dt"], cell.get("rotation", "large"), cell.get("iterations", 25))
+    entry = _solvers.get(key)
+    if entry is None or entry[0] is not backend.current():
+        fem = CorotationalFEM(mesh, material, rotation=key[1])
+        solver = ImplicitEuler(fem, cell["dt"], gravity=GRAVITY, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
+                               cg=CGSettings(max_iterations=key[2]))
+        entry = _solvers[key] = (backend.current(), solver)
+    solver = entry[1]
+    fem = solver.fem
+    lam, mu = material.lame
+    fem.material = material
+    fem.lame.from_numpy(np.tile([lam, mu], (fem.n_elements, 1)))
+    solver.stats = Stats()
+    return solver
+
+
+def simulate(cell: dict) -> dict:
+    """Run one cell on the current backend; return its outcome."""
+    from bench.nonlinear_reference import Body, strain_energy
+    from tissue.errors import TissueError
+    from tissue.fem import Material
+    from tissue.mesh.tetmesh import signed_volumes
+
+    mesh = _mesh()
+    out = dict(cell)
+    start = time.perf_counter()
+    try:
+        material = Material(cell.get("young", TISSUE["young"]), cell.get("poisson", TISSUE["poisson"]), 1000.0)
+        x, v, fixed = initial_state(cell, mesh)
+        solver = solver_for(cell, mesh, material)
+        solver.set_fixed(fixed)
+        solver.set_state(x, v)
+    except TissueError as e:
+        return {**out, "outcome": "refused", "message": str(e)}
+    body = Body(mesh, material, fixed)
+    mass = body.lumped_mass
+    g = np.asarray(GRAVITY)
+
+    def energy(x, v):
+        return 0.5 * mass @ (v * v).sum(1) + strain_energy(body, "polar", x) - mass @ (x @ g)
+
+    steps = cell.get("steps") or min(1000, max(20, math.ceil(1.0 / cell["dt"])))
+    e0 = energy(x, v)
+    scale = max(abs(e0), mass.sum() * 9.81 * LENGTH)
+    emax = emin = e0
+    out.update(steps=steps, inverted_at_start=int((signed_volumes(x, mesh.tets) <= 0).sum()))
+    message, done, e = None, 0, e0
+    try:
+        for done in range(1, steps + 1):
+            solver.step()
+            x, v = solver.positions(), solver.velocities()
+            if not (np.isfinite(x).all() and np.isfinite(v).all()):
+                break
+            e = energy(x, v)
+            emax, emin = max(emax, e), min(emin, e)
+            if e - e0 > 1e6 * scale:    # far past bounded: stop early
+                break
+    except TissueError as err:
+        message = str(err)
+    breakdowns = int(sum(solver.stats.history.get("cg_breakdown", [])))
+    finite = bool(np.isfinite(x).all() and np.isfinite(v).all())
+    inverted = int((signed_volumes(x, mesh.tets) <= 0).sum()) if finite else -1
+    scale = max(scale, e0 - emin)
+    overshoot, net = (emax - e0) / scale, ((e - e0) / scale if finite else math.nan)
+    if message is not None:
+        outcome = "refused"
+    elif not finite:
+        outcome = "silent-nan"
+    elif overshoot > 100 or net > 0.1 or inverted > 0:
+        outcome = "unbounded"
+    else:
+        outcome = "bounded"
+    tip = x[mesh.points[:, 0] >= LENGTH - 1e-9].mean(0) - mesh.points[mesh.points[:, 0] >= LENGTH - 1e-9].mean(0) \
+        if finite else [math.nan] * 3
+    out.update(outcome=outcome, message=message, steps_done=done, energy_overshoot=float(overshoot),
+               energy_net=float(net), kinetic_at_end=float(0.5 * mass @ (v * v).sum(1) / scale) if finite else math.nan,
+               inverted_at_end=inverted, cg_breakdowns=breakdowns,
+               cg_residual=float(solver.stats.counters.get("cg_residual", math.nan)),
+               tip_displacement=[float(t) for t in tip], seconds=time.perf_counter() - start)
+    return out
+
+
+def run_cell(cell: dict) -> dict:
+    """A Dask task: initialise this worker's backend, then simulate."""
+    worker_backend(cell.get("arch", "cpu"))
+    return simulate(cell)
+
+
+# ---- report ----------------------------------------------------------------------------------
+
+SYMBOL = {"bounded": "✓", "refused": "R", "unbounded": "✗", "silent-nan": "NaN"}
+
+
+def symbol(r: dict) -> str:
+    """✓, R, NaN, or for an unbounded cell I (elements left inverted) / E (energy gained)."""
+    if r.get("outcome") == "unbounded":
+        return "I" if r["inverted_at_end"] > 0 else "E"
+    return SYMBOL.get(r.get("outcome"), "error")
+
+
+def matrix_markdown(results: list[dict]) -> str:
+    """Per rotation, a table E × ν: ✓ when bounded at every dt, else the dt that were not."""
+    cells = [r for r in results if r["case"] == "material"]
+    lines = []
+    for rotation in sorted({r["rotation"] for r in cells}):
+        mine = [r for r in cells if r["rotation"] == rotation]
+        poisson = sorted({r["poisson"] for r in mine})
+        steps = sorted({r["dt"] for r in mine})
+        lines += [f"**{rotation}** rotation, dt ∈ {{{', '.join(f'{h:g}' for h in steps)}}} s:", "",
+                  "| E (Pa) | ρgL/E | " + " | ".join(f"ν = {nu:g}" for nu in poisson) + " |",
+                  "|---|---|" + "---|" * len(poisson)]
+        for E in sorted({r["young"] for r in mine}):
+            row = []
+            for nu in poisson:
+                bad = [r for r in mine if r["young"] == E and r["poisson"] == nu and r.get("outcome") != "bounded"]
+                row.append("✓" if not bad else " ".join(f"{symbol(r)}{r['dt']:g}" for r in bad))
+            lines.append(f"| {E:.0e} | {1000 * 9.81 * LENGTH / E:.2g} | " + " | ".join(row) + " |")
+        lines.append("")
+    lines += ["| special cell (E 1e4, ν 0.45, dt 0.04) | rotation | outcome | inverted start → end | "
+              "energy overshoot | note |", "|---|---|---|---|---|---|"]
+    for r in results:
+        if r["case"] != "material":
+            note = (r.get("message") or r.get("error") or "")[:80]
+            lines.append(f"| {r['case']} {r.get('mode', '')} | {r['rotation']} | {r.get('outcome', 'error')} | "
+                         f"{r.get('inverted_at_start', '')} → {r.get('inverted_at_end', '')} | "
+                         f"{r.get('energy_overshoot', math.nan):.2g}× | {note} |")
+    lines += ["", "✓ bounded at every dt; otherwise the dt (s) of each cell that was not, marked I (unbounded: "
+              "elements left inverted at the end), E (unbounded: energy gained), R (refused with a message) or "
+              "NaN (silent non-finite state). Energy overshoot: the largest rise of the total energy over its "
+              "start, in energy scales."]
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    parser.add_argument("--quick", action="store_true", help="a 4 × 3 × 3 material matrix instead of 7 × 5 × 5")
+    parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json")
+    args = parser.parse_args(argv)
+    from .common import RESULTS, write_results
+
+    if args.report:
+        table = matrix_markdown(json.loads((RESULTS / "stability.json").read_text())["cells"])
+        (RESULTS / "stability.md").write_text(table + "\n")
+        print(table)
+        return
+    cells = (material_cells(**QUICK) if args.quick else material_cells()) + special_cells()
+    for c in cells:
+        c["arch"] = args.arch
+    from bench import stability   # by its module name, so that workers import it (and keep its cache)
+
+    with client(args) as c:
+        info = record(c, args)
+        results = run_cells(c, stability.run_cell, cells, "stability")
+    counts = {k: sum(r.get("outcome") == k for r in results) for k in SYMBOL}
+    counts["error"] = sum("error" in r for r in results)
+    print("outcomes:", counts)
+    table = matrix_markdown(results)
+
+    write_results("stability", {"machine": info, "counts": counts, "cells": results})
+    (RESULTS / "stability.md").write_text(table + "\n")
+    print(table)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""The fast cells of bench/stability.py: each stays bounded or is refused with a message, and a
+non-finite state never passes silently. (The full matrix: `python -m bench.stability`.)"""
+
+import numpy as np
+import pytest
+
+from bench import stability
+from bench.nonlinear_reference import Body, internal_forces, tangent
+from tissue.errors import TissueError
+
+
+def outcome(cell):
+    result = stability.simulate(cell)
+    assert result["outcome"] != "silent-nan", result
+    if result["outcome"] == "refused":
+        assert result["message"], result
+    return result
+
+
+@pytest.mark.parametrize("rotation", ["large", "polar"])
+def test_stiff_nearly_incompressible_huge_step_stays_bounded_or_is_refused(backend, rotation):
+    r = outcome(dict(case="material", young=1e8, poisson=0.499, dt=0.5, rotation=rotation))
+    assert r["outcome"] in ("bounded", "refused"), r
+
+
+@pytest.mark.parametrize("mode", ["smooth", "abrupt"])
+@pytest.mark.parametrize("rotation", ["large", "polar"])
+def test_half_turn_twist_stays_bounded(backend, mode, rotation):
+    r = outcome(dict(case="twist", mode=mode, dt=0.04, steps=150, rotation=rotation))
+    assert r["outcome"] == "bounded", r
+
+
+@pytest.mark.parametrize("mode", ["node", "mirror"])
+@pytest.mark.parametrize("rotation", ["large", "polar"])
+def test_inverted_initial_state_recovers(backend, mode, rotation):
+    r = outcome(dict(case="inverted", mode=mode, dt=0.04, steps=250, rotation=rotation))
+    assert r["inverted_at_start"] > 0
+    assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0, r
+
+
+def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
+    r = outcome(dict(case="jerk", mode="half-length", dt=0.04, steps=100, rotation="polar"))
+    assert r["outcome"] == "bounded", r
+
+
+def test_gravity_from_rest_loses_energy(backend):
+    r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="large"))
+    assert r["outcome"] == "bounded" and r["energy_net"] < 0, r
+
+
+@pytest.mark.parametrize("state", ["nan positions", "collapsed to a point"])
+def test_no_silent_nan(backend, state):
+    mesh = stability._mesh()
+    from tissue.fem import Material
+
+    solver = stability.solver_for(dict(dt=0.04), mesh, Material(1e4, 0.45, 1000.0))
+    x, _, fixed = stability.initial_state(dict(case="material"), mesh)
+    solver.set_fixed(fixed)
+    if state == "nan positions":
+        x[5] = np.nan
+    else:
+        x[:] = x[0]
+    solver.set_state(x, np.zeros_like(x))
+    try:
+        solver.step()
+    except TissueError as e:
+        assert "diverged" in str(e)
+        return
+    assert np.isfinite(solver.positions()).all() and np.isfinite(solver.velocities()).all()
+
+
+# ---- the nonlinear reference the accuracy bench relies on (numpy only) -------------------------
+
+@pytest.fixture(scope="module")
+def body():
+    from tissue.fem import Material
+    from tissue.mesh import beam
+
+    mesh = beam(1.0, 0.1, 0.1, 10, 1)
+    return Body(mesh, Material(1e6, 0.3, 1000.0), np.flatnonzero(mesh.points[:, 0] < 1e-9))
+
+
+def deformed(mesh, seed=0):
+    rng = np.random.default_rng(seed)
+    c, s = np.cos(0.7), np.sin(0.7)
+    return (mesh.points + 0.01 * rng.standard_normal(mesh.points.shape)) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+
+
+@pytest.mark.parametrize("rotation", ["large", "polar", "linear"])
+def test_reference_corotational_forces_match_the_scipy_reference(body, rotation):
+    from tissue.solver.reference import linearise
+
+    x = deformed(body.mesh)
+    expected = linearise(body.mesh, body.material, x, np.zeros_like(x), 1.0, rotation=rotation).forces
+    assert np.allclose(internal_forces(body, rotation, x).ravel(), expected, rtol=0, atol=1e-12 * abs(expected).max())
+
+
+@pytest.mark.parametrize("model", ["stvk", "large", "polar"])
+def test_reference_tangents_match_differenced_forces(body, model):
+    x = deformed(body.mesh, 1)
+    d = 1e-7 * np.random.default_rng(2).standard_normal(x.shape)
+    differenced = -(internal_forces(body, model, x + d) - internal_forces(body, model, x - d)).ravel() / 2
+    assert np.linalg.norm(tangent(body, model, x) @ d.ravel() - differenced) < 1e-6 * np.linalg.norm(differenced)
+
+
+def test_stvk_has_no_force_under_rigid_motion(body):
+    c, s = np.cos(1.0), np.sin(1.0)
+    x = body.mesh.points @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T + 3.0
+    forces = internal_forces(body, "stvk", x)
+    assert abs(forces).max() < 1e-9 * body.material.young * body.mesh.volumes.sum() ** (2 / 3)
