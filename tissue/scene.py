@@ -131,7 +131,9 @@ class SoftBody(Options):
     young: float = 3000.0       # Pa
     poisson: float = 0.3
     density: float = 1000.0     # kg/m^3
-    rotation: Literal["large", "polar", "linear"] = "large"   # co-rotational method of the FEM
+    # co-rotational method: 'polar' stays bounded where 'large' gains energy (ν ≥ 0.45, soft
+    # materials: bench/stability.py); 'large' is SOFA's default and a little cheaper
+    rotation: Literal["large", "polar", "linear"] = "polar"
     fixed: Fixed = field(default_factory=Fixed)
     position: tuple[float, float, float] = (0.0, 0.0, 0.0)      # m
     orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)   # degrees about x, y, z

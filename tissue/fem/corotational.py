@@ -136,6 +136,7 @@ class CorotationalFEM:
         self.volume = ti.field(real, m)
         self.lame = ti.Vector.field(2, real, m)
         self.R = ti.Matrix.field(3, 3, real, m)
+        self.inverted = int_field(())
         self.tets.from_numpy(mesh.tets.astype(np.int32))
         self.rest.from_numpy(X)
         self.Dm_inv.from_numpy(np.linalg.inv(Dm))
@@ -234,8 +235,14 @@ class CorotationalFEM:
 
     @ti.func
     def update_rotations(self, x):
+        """Element rotations at x, and the count of inverted elements (det F ≤ 0): linear
+        co-rotational elements have no inversion barrier, so a caller should hear of them."""
+        self.inverted[None] = 0
         for e in range(self.n_elements):
             self.R[e] = self.element_rotation(e, x)
+            t = self.tets[e]
+            if (x[t[1]] - x[t[0]]).dot((x[t[2]] - x[t[0]]).cross(x[t[3]] - x[t[0]])) <= 0:
+                self.inverted[None] += 1
 
     @ti.func
     def _deposit(self, e, H, out):

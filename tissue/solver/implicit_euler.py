@@ -14,6 +14,7 @@ fixed order, so results are bit-identical run to run.
 """
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,6 +92,7 @@ class ImplicitEuler:
         self.gravity = tuple(float(g) for g in gravity)
         self.rayleigh_mass, self.rayleigh_stiffness = float(rayleigh_mass), float(rayleigh_stiffness)
         self.stats = Stats()
+        self._warned_inversion = False
         n, real = fem.n_nodes, be.real
 
         self.x = ti.Vector.field(3, real, n)
@@ -161,9 +163,16 @@ class ImplicitEuler:
                 for _ in range(-(-self.cg.max_iterations // self.unroll)):
                     self._iterate_parallel()
                 report = self._end_parallel()
-        iterations, res2, rhs2, breakdown, nonfinite = (float(c) for c in report)
+        iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
-        self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown))
+        self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),
+                         inverted_elements=int(inverted))
+        if inverted and not self._warned_inversion:
+            self._warned_inversion = True
+            warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; linear "
+                          "co-rotational elements have no inversion barrier, so the material may be too "
+                          f"soft for its load (E={self.fem.material.young}) or dt too large (dt={self.dt}); "
+                          "'polar' rotations recover better than 'large'", stacklevel=2)
         # A non-finite right-hand side (NaN positions, or NaN velocities at fixed nodes) stops the CG
         # at once with dv = 0, so the velocities alone would not show it.
         if nonfinite > 0 or not (math.isfinite(rhs2) and math.isfinite(res2)):
@@ -344,10 +353,10 @@ class ImplicitEuler:
     @ti.func
     def _report(self):
         return ti.Vector([self.scalars[ITERATION], self.scalars[RES2], self.scalars[RHS2],
-                          self.scalars[BREAKDOWN], self.scalars[NONFINITE]])
+                          self.scalars[BREAKDOWN], self.scalars[NONFINITE], self.fem.inverted[None]])
 
     @ti.kernel
-    def _end_parallel(self) -> ti.types.vector(5, float):
+    def _end_parallel(self) -> ti.types.vector(6, float):
         self._end()
         return self._report()
 
@@ -358,7 +367,7 @@ class ImplicitEuler:
             self._begin()
 
     @ti.kernel
-    def _solve_serial(self) -> ti.types.vector(5, float):
+    def _solve_serial(self) -> ti.types.vector(6, float):
         ti.loop_config(serialize=True)
         for _ in range(1):
             while self.scalars[DONE] == 0:
