@@ -37,10 +37,15 @@ test-all: setup
 
 bench: setup
 	$(PY) -m bench.deformation
+	$(PY) -m bench.contact
+	$(PY) -m bench.accuracy
+	$(PY) -m bench.stability
 
 figures: demo
 	$(VENV)/bin/tissue run beam --out figures/beam
 	$(VENV)/bin/tissue run organs --out figures/organs
+	$(VENV)/bin/tissue run incline --out figures/incline
+	$(VENV)/bin/tissue run liver_press --out figures/liver_press
 
 clean:
 	rm -rf $(VENV) out build *.egg-info
