@@ -1,18 +1,29 @@
 """Contact benchmark (paper §3.7): ms per step by stage, compliance warping against the exact
 compliance (a sparse LU of the current matrix each step: the paper's "50× slower" direct way),
-in one run on this machine.
+and the contact-force error between the two, in one run on this machine.
 
-    liver_press   scenes/liver_press.py: the 1,300-tet liver pushed by a probe against 20 capsule
-                  ribs and the 800-tet stomach, 200-400 constraint rows (paper: 1,300 tets, up to
-                  450 constraints, 70 FPS on an i7 975 including the haptic thread)
+    liver_press   scenes/liver_press.py: the 1,300-tet liver pushed by a probe into the 800-tet
+                  stomach, its right lobe against 20 capsule ribs; 300-380 constraint rows while
+                  pressed (paper: 1,300 tets, up to 450 constraints, 70 FPS on an i7 975 with the
+                  haptic thread). Per stage the median over the pressed steps (≥ 150 rows), the
+                  Taichi kernel launches per step, and along the warped run, every 8th pressed
+                  step, the exact W of the same rows and both frictional problems solved: the
+                  error of the warped contact forces.
+    450 rows      the same scene with the alarm distance widened to 4 mm (about 450 rows while
+                  pressed): per stage, and every 4th step with ≥ 420 rows the compliance stage's W
+                  by warping against the exact W of the same rows (LU of this step's matrix,
+                  solves, H A⁻¹ Hᵀ), ms and ratio, and the force error there.
     liver_floor   SOFA's contact scene of REFERENCE-TIMINGS.md: the 596-tet liver falls on a rigid
                   floor, μ 0.5, about 28 contacts at rest (SOFA: 1.79 ms/step warped, 5.95 exact)
 
-    python -m bench.contact            # both scenes, both compliances (~2 min on 2 cores)
+    python -m bench.contact            # everything (~40 s on 2 cores)
+    python -m bench.contact --quick    # liver_press warped only, and the 450-row comparison
 """
 
 import argparse
 import sys
+import time
+from collections import Counter
 
 import numpy as np
 
@@ -20,14 +31,108 @@ from bench.common import machine, print_machine, write_results
 
 SOFA_FLOOR_MS = {"warped": 1.79, "exact": 5.95}
 STAGES = ("detection", "constraints", "compliance", "lcp", "correction")
+WIDE_DISTANCE = 4e-3     # m: liver_press's alarm distance widened to about 450 rows
 
 
-def run_press(compliance: str, steps: int) -> dict:
+class LaunchCounter:
+    """Counts Taichi kernel launches by kernel name while active (a wrapper on Kernel.__call__)."""
+
+    def __enter__(self):
+        from taichi.lang import kernel_impl
+
+        self.counts, self._kernel, self.paused = Counter(), kernel_impl.Kernel, False
+        original = self._original = kernel_impl.Kernel.__call__
+        counts = self.counts
+
+        def call(kernel, *args, **kwargs):
+            if not self.paused:
+                counts[kernel.func.__name__] += 1
+            return original(kernel, *args, **kwargs)
+
+        kernel_impl.Kernel.__call__ = call
+        return self
+
+    def __exit__(self, *exc):
+        self._kernel.__call__ = self._original
+
+
+def press(compliance: str, overrides=()):
     from scenes.liver_press import LiverPress
     from tissue.scene import Simulation
 
-    sim = Simulation(LiverPress().with_overrides([f"contact.compliance={compliance}"]))
-    return _collect(sim, steps, min_rows=150)
+    return Simulation(LiverPress().with_overrides([f"contact.compliance={compliance}", *overrides]))
+
+
+def contact_stage(sim):
+    return next(s for s in sim.stages if s.name == "contact").stage
+
+
+def force_error(solve, W_warped, W_exact, rows, contacts, mu) -> dict:
+    """Both frictional problems of one state solved by the stage's `solve` to its tolerance (same
+    q, μ, warm start): relative errors of the contact forces and of their sum, and of W."""
+    lam_w, _ = solve(W_warped, rows, contacts, mu)
+    lam_e, _ = solve(W_exact, rows, contacts, mu)
+    nc = rows.n_contacts
+    fw = np.einsum("ki,kij->kj", lam_w[:3 * nc].reshape(-1, 3), rows.frames)
+    fe = np.einsum("ki,kij->kj", lam_e[:3 * nc].reshape(-1, 3), rows.frames)
+    return {"forces": float(np.linalg.norm(fw - fe) / np.linalg.norm(fe)),
+            "total_force": float(np.linalg.norm(fw.sum(0) - fe.sum(0)) / np.linalg.norm(fe.sum(0))),
+            "W": float(np.linalg.norm(W_warped - W_exact) / np.linalg.norm(W_exact))}
+
+
+def exact_W(stage, rows) -> np.ndarray:
+    """h H A⁻¹ Hᵀ with A the matrix of this step's free motion (the solver's own blocks)."""
+    from tissue.contact.compliance import ExactCompliance
+
+    W = np.zeros((rows.n_rows, rows.n_rows))
+    for b in np.unique(rows.body):
+        c = ExactCompliance(stage.bodies[b].solver)
+        c.factorise()
+        c.prepare(rows, int(b))
+        c.add_to(W)
+    return W
+
+
+def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int = 150,
+              overrides=()) -> dict:
+    """The scene stepped `steps` times. With check_every: every that many steps with at least
+    `min_rows` rows, the exact W of the same rows (timed) and the force error of the warped one,
+    on the side (the run itself goes on with its own W)."""
+    sim = press(compliance, overrides)
+    stage = contact_stage(sim)
+    checks, checked_steps = [], set()
+    launches = LaunchCounter()
+    if check_every:
+        solve, seen = stage._solve, [0]
+
+        def checked(W, rows, contacts, mu):
+            if rows.n_rows >= min_rows:
+                seen[0] += 1
+                if seen[0] % check_every == 0:       # (left out of the timings and launch counts)
+                    launches.paused = True
+                    checked_steps.add(len(sim.stats.times["contact"]))
+                    start = time.perf_counter()
+                    W_exact = exact_W(stage, rows)
+                    exact_ms = 1e3 * (time.perf_counter() - start)
+                    check = force_error(solve, W.copy(), W_exact, rows, contacts, mu)
+                    check.update(rows=rows.n_rows, exact_ms=exact_ms,
+                                 warped_ms=1e3 * stage.stats.times["compliance"][-1])
+                    checks.append(check)
+                    launches.paused = False
+            return solve(W, rows, contacts, mu)
+
+        stage._solve = checked
+    for _ in range(3):
+        sim.step()
+    with launches:
+        result = _collect(sim, steps - 3, min_rows=min_rows, skip=checked_steps)
+    result["launches_per_step"] = sum(launches.counts.values()) / (steps - 3)
+    result["launches_by_kernel"] = {k: v / (steps - 3) for k, v in launches.counts.most_common()}
+    if checks:
+        result["checks"] = {k: {"median": float(np.median([c[k] for c in checks])),
+                                "max": float(np.max([c[k] for c in checks]))} for k in checks[0]}
+        result["checks"]["states"] = len(checks)
+    return result
 
 
 def run_floor(compliance: str, steps: int) -> dict:
@@ -46,31 +151,55 @@ def run_floor(compliance: str, steps: int) -> dict:
                                                                  max_iterations=1000, compliance=compliance))
         solver: Solver = field(default_factory=lambda: Solver(cg_iterations=25, cg_tolerance=1e-9))
 
-    return _collect(Simulation(LiverFloor()), steps, min_rows=30)
+    sim = Simulation(LiverFloor())
+    for _ in range(3):
+        sim.step()
+    return _collect(sim, steps - 3, min_rows=30)
 
 
-def _collect(sim, steps: int, min_rows: int) -> dict:
-    """Run, then medians over the steps with at least `min_rows` constraint rows."""
+def _collect(sim, steps: int, min_rows: int, skip=()) -> dict:
+    """Run, then medians over the steps with at least `min_rows` constraint rows (leaving out the
+    steps numbered in `skip`, counted from the simulation's first)."""
+    start = len(sim.stats.times["contact"])
     rows, iters = [], []
     for _ in range(steps):
         sim.step()
         rows.append(sim.stats.counters.get("rows", 0))
         iters.append(sim.stats.counters.get("gs_iterations", 0))
     rows, iters = np.array(rows), np.array(iters)
-    keep = np.flatnonzero(rows >= min_rows)
-    keep = keep[keep >= 3]                     # compile and warm-up
-    times = sim.stats.times
-    ms = {name: 1e3 * float(np.median(np.asarray(times[name])[keep])) for name in ("free_motion", "contact")}
-    ms.update({s: 1e3 * float(np.median(np.asarray(times[f"contact: {s}"])[keep])) for s in STAGES})
-    ms["total"] = ms["free_motion"] + ms["contact"]
+    keep = np.flatnonzero((rows >= min_rows) & ~np.isin(np.arange(steps) + start, list(skip)))
+    times = {k: np.asarray(v[start:]) for k, v in sim.stats.times.items()}
+    ms = {name: 1e3 * float(np.median(times[name][keep])) for name in ("free_motion", "contact")}
+    ms.update({s: 1e3 * float(np.median(times[f"contact: {s}"][keep])) for s in STAGES})
+    ms["total"] = 1e3 * float(np.median((times["free_motion"] + times["contact"])[keep]))
     return {"ms_per_step": ms, "steps_measured": int(len(keep)), "rows_median": float(np.median(rows[keep])),
             "rows_max": int(rows.max()), "gs_iterations_median": float(np.median(iters[keep])),
             "bodies": {n: {"tets": b.mesh.n_tets, "nodes": b.mesh.n_points} for n, b in sim.bodies.items()}}
 
 
+def _table(name: str, results: dict) -> None:
+    first = next(iter(results.values()))
+    print(f"\n{name}: {first['bodies']}, rows median {first['rows_median']:.0f} (max {first['rows_max']}), "
+          f"GS iterations median {first['gs_iterations_median']:.0f}")
+    cols = ("free_motion",) + STAGES + ("total",)
+    print(f"{'ms/step':<12}" + "".join(f"{k:>13}" for k in cols) + f"{'launches':>10}")
+    for c, r in results.items():
+        ms = r["ms_per_step"]
+        launches = f"{r['launches_per_step']:10.1f}" if "launches_per_step" in r else ""
+        print(f"{c:<12}" + "".join(f"{ms[k]:13.2f}" for k in cols) + launches)
+
+
+def _errors(c: dict, where: str) -> None:
+    print(f"warped vs exact W, {where} ({c['states']} states, same rows, each LCP solved to tolerance): "
+          f"‖ΔW‖/‖W‖ median {c['W']['median']:.3f} (max {c['W']['max']:.3f}); contact forces "
+          f"{c['forces']['median']:.3f} ({c['forces']['max']:.3f}); their sum {c['total_force']['median']:.3f} "
+          f"({c['total_force']['max']:.3f})")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=80)
+    parser.add_argument("--quick", action="store_true", help="liver_press warped and the 450-row comparison only")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -78,19 +207,45 @@ def main(argv=None) -> int:
     info = machine()
     print_machine(info)
     out = {"machine": info, "sofa_floor_ms": SOFA_FLOOR_MS}
-    for name, run in (("liver_press", run_press), ("liver_floor", run_floor)):
-        out[name] = {c: run(c, args.steps) for c in ("warped", "exact")}
-        w, e = out[name]["warped"], out[name]["exact"]
-        print(f"\n{name}: {w['bodies']}, rows median {w['rows_median']:.0f} (max {w['rows_max']}), "
-              f"GS iterations median {w['gs_iterations_median']:.0f}")
-        print(f"{'ms/step':<12}" + "".join(f"{k:>13}" for k in ("free_motion",) + STAGES + ("total",)))
-        for c in ("warped", "exact"):
-            ms = out[name][c]["ms_per_step"]
-            print(f"{c:<12}" + "".join(f"{ms[k]:13.2f}" for k in ("free_motion",) + STAGES + ("total",)))
-        ratio = e["ms_per_step"]["contact"] / w["ms_per_step"]["contact"]
-        out[name]["exact_over_warped_contact"] = ratio
-        print(f"contact stage: exact / warped = {ratio:.1f}x")
-    write_results("contact", out)
+
+    press_results = {"warped": run_press("warped", args.steps, check_every=0 if args.quick else 8)}
+    if not args.quick:
+        press_results["exact"] = run_press("exact", args.steps)
+    out["liver_press"] = press_results
+    _table("liver_press", press_results)
+    if "exact" in press_results:
+        w, e = press_results["warped"]["ms_per_step"], press_results["exact"]["ms_per_step"]
+        out["liver_press"]["exact_over_warped"] = {"compliance": e["compliance"] / w["compliance"],
+                                                   "contact": e["contact"] / w["contact"]}
+        print(f"exact / warped: compliance stage {e['compliance'] / w['compliance']:.0f}x, "
+              f"contact stage {e['contact'] / w['contact']:.0f}x")
+    if "checks" in press_results["warped"]:
+        _errors(press_results["warped"]["checks"], "along the warped run")
+    calls = press_results["warped"]["launches_by_kernel"]
+    print("kernel launches per step (warped): " + ", ".join(f"{k} {v:.1f}" for k, v in calls.items()))
+
+    # The paper's 450 constraints: the same scene with a wider alarm distance (more contact points).
+    wide = run_press("warped", 72, check_every=4, min_rows=420, overrides=[f"contact.distance={WIDE_DISTANCE}"])
+    out["liver_press_450_rows"] = wide
+    if "checks" in wide:
+        c = wide["checks"]
+        print(f"\nliver_press, alarm distance {1e3 * WIDE_DISTANCE:.1f} mm: rows median {wide['rows_median']:.0f} "
+              f"(max {wide['rows_max']}); total {wide['ms_per_step']['total']:.2f} ms/step, compliance "
+              f"{wide['ms_per_step']['compliance']:.2f}, lcp {wide['ms_per_step']['lcp']:.2f}")
+        print(f"W at {c['rows']['median']:.0f} rows: warped {c['warped_ms']['median']:.2f} ms (the compliance stage), "
+              f"exact {c['exact_ms']['median']:.0f} ms (LU and solves): "
+              f"exact / warped = {c['exact_ms']['median'] / c['warped_ms']['median']:.0f}x")
+        _errors(c, "at ≥ 420 rows")
+
+    if not args.quick:
+        floor = {c: run_floor(c, args.steps) for c in ("warped", "exact")}
+        out["liver_floor"] = floor
+        _table("liver_floor", floor)
+        ratio = floor["exact"]["ms_per_step"]["contact"] / floor["warped"]["ms_per_step"]["contact"]
+        out["liver_floor"]["exact_over_warped_contact"] = ratio
+        print(f"contact stage: exact / warped = {ratio:.1f}x (SOFA: warped {SOFA_FLOOR_MS['warped']} ms/step "
+              f"in total, exact {SOFA_FLOOR_MS['exact']})")
+    write_results("contact-quick" if args.quick else "contact", out)
     return 0
 
 

@@ -776,3 +776,42 @@ def test_scene_contact_options_are_validated(backend):
 
     with pytest.raises(TissueError, match="floor: an obstacle needs contact"):
         Simulation(NoContact())
+
+
+def test_obstacles_are_drawn_where_they_are(backend):
+    """The contact layer hands its obstacles to the run output as drawables: a plane as a flat
+    patch around the bodies, in the plane and left out of the camera framing; a probe as a
+    sphere that follows its keyframes."""
+    from dataclasses import dataclass, field
+
+    from tissue.contact import Contact, Obstacle
+    from tissue.scene import Drawable, Scene, Simulation, SoftBody
+
+    @dataclass
+    class Press(Scene):
+        cube: SoftBody = field(default_factory=lambda: SoftBody(mesh="box", size=(0.1, 0.1, 0.1), cells=(1, 1, 1)))
+        floor: Obstacle = field(default_factory=lambda: Obstacle(shape="plane", centre=(0, 0, -0.05),
+                                                                 normal=(0, 1, 1), color="#ddd"))
+        probe: Obstacle = field(default_factory=lambda: Obstacle(
+            shape="sphere", centre=(0, 0, 0.08), radius=0.02, keyframes=(0, 0, 0, 0, 1, 0, 0, -0.02)))
+        contact: Contact = field(default_factory=Contact)
+
+    sim = Simulation(Press())
+    stage = next(s for s in sim.stages if s.name == "contact")
+    floor, probe = stage.drawables()
+    assert isinstance(floor, Drawable) and (floor.name, probe.name) == ("floor", "probe")
+    bounds = (-0.05, 0.05, -0.05, 0.05, -0.05, 0.05)
+    points, triangles = floor.surface(bounds)
+    n = np.array([0, 1, 1]) / np.sqrt(2)
+    np.testing.assert_allclose((points - [0, 0, -0.05]) @ n, 0.0, atol=1e-15)
+    corners = np.array(np.meshgrid(*np.reshape(bounds, (3, 2)), indexing="ij")).reshape(3, -1).T
+    shadow = corners - np.outer((corners - [0, 0, -0.05]) @ n, n)       # the box seen along n
+    u, w = points[1] - points[0], points[3] - points[0]
+    for p in shadow:                                                  # inside the patch
+        a, b = (p - points[0]) @ u / (u @ u), (p - points[0]) @ w / (w @ w)
+        assert 0 < a < 1 and 0 < b < 1
+    assert not floor.framed and floor.flat and not floor.moving and floor.color == "#ddd"
+    points, _ = probe.surface(bounds)
+    np.testing.assert_allclose(np.linalg.norm(points - [0, 0, 0.08], axis=1), 0.02, atol=1e-12)
+    assert probe.framed and probe.moving and probe.color is None
+    np.testing.assert_allclose(probe.pose(0.5), np.r_[np.c_[np.eye(3), [0, 0, -0.01]], [[0, 0, 0, 1]]], atol=1e-15)

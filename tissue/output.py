@@ -9,7 +9,9 @@
 
 Only these names are written: nothing else in the folder is touched or deleted. States are recorded
 during the run (positions, and stresses when needed) and rendered at the end, so the colour range
-and the camera frame cover the whole motion. pyvista is imported only when rendering.
+and the camera frame cover the whole motion. pyvista is imported only when rendering. Rigid things
+the stages declare (`drawables()`, see `tissue.scene.Drawable`: the contact layer's obstacles)
+are drawn in every image and follow their prescribed motion.
 """
 
 from __future__ import annotations
@@ -78,6 +80,9 @@ class RunOutput:
         self.wanted = wanted | {0, self.steps}
         self.need_stress = "vtu" in self.outputs or (self.rendering and settings.scalars == "von_mises")
         self.frames: list[Frame] = []
+        # Rigid things the stages want drawn (tissue.scene.Drawable; e.g. the contact obstacles).
+        self.drawables = [d for stage in sim.stages for d in (getattr(stage, "drawables", None) or list)()]
+        self._surfaces = None
         self.seconds = {"record": 0.0, "render": 0.0}
         self.written: list[Path] = []
         self.series = None
@@ -172,14 +177,30 @@ class RunOutput:
         values = [{k: v * factor for k, v in per_body.items()} for per_body in values]
         return title, values, (0.0, nice_ceiling(top * factor))
 
-    def _bounds(self) -> np.ndarray:
+    def _bounds(self, bodies_only: bool = False) -> np.ndarray:
+        """(xmin, xmax, ymin, ymax, zmin, zmax) of the bodies over the recorded frames, and of the
+        framed drawables (obstacles) where they are in those frames."""
         lo = np.full(3, np.inf)
         hi = np.full(3, -np.inf)
         for frame in self.frames:
             for x in frame.positions.values():
                 lo = np.minimum(lo, x.min(axis=0))
                 hi = np.maximum(hi, x.max(axis=0))
+        if not bodies_only:
+            bodies = np.stack([lo, hi], axis=1).ravel()
+            for d, (points, _) in zip(self.drawables, self._drawable_surfaces(bodies)):
+                if not d.framed:
+                    continue
+                for frame in (self.frames if d.moving else self.frames[:1]):
+                    T = np.asarray(d.pose(frame.time))
+                    world = points @ T[:3, :3].T + T[:3, 3]
+                    lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
         return np.stack([lo, hi], axis=1).ravel()
+
+    def _drawable_surfaces(self, body_bounds):
+        if self._surfaces is None:
+            self._surfaces = [d.surface(tuple(body_bounds)) for d in self.drawables]
+        return self._surfaces
 
     def _renderer(self, size, bounds, colouring, title):
         from .render import Renderer
@@ -201,6 +222,9 @@ class RunOutput:
                 ghost = pv.PolyData.from_regular_faces(points, np.asarray(faces, dtype=np.int64))
                 renderer.plotter.add_mesh(ghost, name=f"ghost:{name}", color="#8a8f96", opacity=0.18,
                                           smooth_shading=True, specular=0.0)
+        for d, surface in zip(self.drawables, self._drawable_surfaces(self._bounds(bodies_only=True))):
+            renderer.add_obstacle(d.name, surface, color=d.color, framed=d.framed, lit=not d.flat)
+            renderer.update_obstacle(d.name, transform=d.pose(self.frames[0].time))
         markers = self._markers(bounds)
         if markers is not None:
             renderer.add_obstacle("held nodes", markers, color="#303030", framed=False)
@@ -236,6 +260,9 @@ class RunOutput:
         for name in self.sim.bodies:
             points, _, scalars = self._drawn(name, index, colouring)
             renderer.update_body(name, points=points, scalars=scalars)
+        for d in self.drawables:
+            if d.moving:
+                renderer.update_obstacle(d.name, transform=d.pose(self.frames[index].time))
         renderer.set_label(f"t = {self.frames[index].time:.2f} s")
 
     def _render(self, progress=None) -> None:

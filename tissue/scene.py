@@ -28,7 +28,10 @@ How a later layer plugs in (contact, attachments, haptics, cutting)
        the scenes that use it declare a field of that type (`contact: Contact = field(...)`).
        Scenes that do not declare it are untouched: nothing here names the layer.
     2. A stage is any object with a `name` and `step(sim)`; it may also have `report()` returning
-       ({sub-stage: seconds of the last step}, {counter: value}) to be merged into `sim.stats`.
+       ({sub-stage: seconds of the last step}, {counter: value}) to be merged into `sim.stats`, and
+       `drawables()` returning the rigid things it wants in the run's images (`Drawable`: a surface
+       in its own frame and a pose over time; `tissue.output` draws and moves them without knowing
+       what they are, e.g. the contact layer's obstacles).
     3. A builder `build(sim) -> stage | None` returns the stage only when the scene declares the
        layer (`sim.scene.parts(Contact)` lists such fields), and is registered at its place in the
        data flow of DESIGN.md (free motion, detection, compliance, LCP, correction, hand-off,
@@ -53,7 +56,7 @@ from .errors import TissueError
 from .options import Options, apply_overrides, require, suggestion, validate
 from .stats import Stats
 
-__all__ = ["Fixed", "SoftBody", "Solver", "Render", "Scene", "Simulation", "Body", "STAGES",
+__all__ = ["Fixed", "SoftBody", "Solver", "Render", "Scene", "Simulation", "Body", "Drawable", "STAGES",
            "add_stage", "validate", "apply_overrides", "build_mesh", "held_nodes"]
 
 ORGANS = ("liver", "stomach", "colon")
@@ -467,6 +470,27 @@ class Stage(Protocol):
     name: str
 
     def step(self, sim: "Simulation") -> None: ...
+
+
+@dataclass
+class Drawable:
+    """A rigid shape a stage asks the run output to draw (an obstacle), given in its own frame.
+
+    surface(bounds) -> (points (n, 3), triangles (k, 3)); `bounds` = (xmin, xmax, ymin, ymax, zmin,
+    zmax) of the soft bodies over the run, for shapes with no extent of their own (a plane is drawn
+    as a patch around the bodies). pose(time) -> 4×4 transform to the world; `moving`: it changes
+    over time (else the pose at time 0 holds). framed: counts when framing the camera (a large
+    plane should not). color: None for the renderer's obstacle grey. flat: one unlit tone, like the
+    floor (a large plane), rather than shaded.
+    """
+
+    name: str
+    surface: Callable[[tuple], tuple[np.ndarray, np.ndarray]]
+    pose: Callable[[float], np.ndarray]
+    moving: bool = False
+    framed: bool = True
+    color: str | None = None
+    flat: bool = False
 
 
 class FreeMotion:

@@ -26,12 +26,19 @@ elements' rotations, i.e. their orthonormalised average) it is the paper's appro
 A₀⁻¹ is computed once, dense, from the assembled sparse A₀ (tissue.solver.reference) with the
 body's dt, damping and fixed nodes (their rows and columns are zero: fixed nodes do not move). The
 same approximate operator builds W and applies the correction, so δ = δ_free + W λ holds exactly
-for what is applied; the approximation only changes which λ is found. Kernels: (1) Hr = H R, a
-thread per stored block; U = A₀⁻¹ Hrᵀ, a thread per entry (dof, row); (2) W += h Hr U, a thread
-per entry of W; the rows' blocks are read through JDS. Going through U rather than summing
-Hr(i,·) A₀⁻¹ Hr(j,·)ᵀ in each entry of W needs (3n + rows) 3b instead of rows 9b²
-multiplications per row (b blocks per row; about 2/3 as many for the liver's 350 rows, b ≈ 2.2,
-fewer the more rows), and the correction is then one product, dx = R h U λ (a thread per node).
+for what is applied; the approximation only changes which λ is found.
+
+Kernels (one launch per body for W, one for the correction). H is stored in JDS of 3×3 blocks
+(a contact's three rows touch the same nodes; constraints.py), and only the t nodes the rows
+touch matter: (1) Hr = H R, a 3×3 block per stored block; U = A₀⁻¹ Hrᵀ restricted to the 3t
+touched dofs, an entry (block row, dof) per thread; (2) W += h Hr U, a 3×3 block of W per thread,
+upper triangle mirrored. For the liver pressed by the probe (about 120 block rows on 50 nodes of
+373) that is about 0.4 M multiply-adds each for U and W (U through all 3n dofs: 2.5 M). The
+correction gathers r₀ = Hrᵀ λ on the touched dofs (serially: a fixed summation order) and then
+reads the touched rows of A₀⁻¹: dx = R h A₀⁻¹ r₀, a thread per node. The nodal
+rotations come in the same launch as W (Newton–Schulz from the elements' mean rotation, the
+FEM's polar iteration where that is far from orthogonal). On the CPU, bodies of this size run
+every loop on one thread: the thread pool's dispatch costs more than it saves on 2 cores.
 
 Exact. W = h H A⁻¹ Hᵀ with A the matrix of this step's free motion (assembled where it linearised,
 at x_prev = x_free - h v_free: the solver's own stiffness blocks, or the numpy reference),
@@ -50,80 +57,140 @@ from ..fem.corotational import polar_rotation
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 
+SERIAL_BELOW = 10_000    # nodes: below, the CPU runs the compliance loops on one thread
+
+
+@ti.func
+def _nodal_rotation(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), v, tol):
+    """The orthonormalised average of the rotations of the elements around node v: the rotation
+    of the polar decomposition of their mean X₀. Newton–Schulz, X ← X (3I - XᵀX) / 2, converges
+    to it quadratically when the rotations are alike (X₀ nearly orthogonal: a few 3×3 products);
+    otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM."""
+    X = ti.Matrix.zero(float, 3, 3)
+    for k in range(offsets[v], offsets[v + 1]):
+        X += Re[incidence[k] // 4]
+    S = X / ti.max(offsets[v + 1] - offsets[v], 1)
+    X = S
+    done = False
+    if S.determinant() > 0.0:
+        for _ in range(12):
+            E = X.transpose() @ X - ti.Matrix.identity(float, 3)
+            e = E.norm()
+            if e > 0.5:                             # too far from orthogonal for Newton–Schulz
+                break
+            X = X - 0.5 * (X @ E)
+            if e <= tol:
+                done = True
+                break
+    if not done:
+        X = polar_rotation(S, tol)
+    return X
+
 
 @ti.kernel
 def _nodal_rotations(Re: ti.template(), offsets: ti.template(), incidence: ti.template(),
                      out: ti.template(), tol: float):
     for v in out:
-        S = ti.Matrix.zero(float, 3, 3)
-        for k in range(offsets[v], offsets[v + 1]):
-            S += Re[incidence[k] // 4]
-        out[v] = polar_rotation(S, tol)
+        out[v] = _nodal_rotation(Re, offsets, incidence, v, tol)
+
+
+@ti.func
+def _jds_offsets(n_active, k_max, nnz):
+    """Offsets of perm, count, jd_ptr, node, local, touched in JaggedDiagonal.packed."""
+    o_count = n_active
+    o_ptr = 2 * n_active
+    o_node = o_ptr + k_max + 1
+    o_local = o_node + nnz
+    return o_count, o_ptr, o_node, o_local, o_local + nnz
 
 
 @ti.kernel
-def _rotate_rows(value: ti.types.ndarray(), node: ti.types.ndarray(), R: ti.template(),
-                 hr: ti.types.ndarray()):
-    """Kernel 1: Hr = H R, block by block (a 1×3 row block times the node's 3×3 rotation)."""
-    for e in range(node.shape[0]):
-        h = ti.Vector([value[e, 0], value[e, 1], value[e, 2]])
-        r = R[node[e]].transpose() @ h
-        for c in ti.static(range(3)):
-            hr[e, c] = r[c]
-
-
-@ti.kernel
-def _compliance_rows(C0: ti.types.ndarray(), count: ti.types.ndarray(), jd_ptr: ti.types.ndarray(),
-                     node: ti.types.ndarray(), hr: ti.types.ndarray(), Ut: ti.types.ndarray()):
-    """Uᵀ = Hr A₀⁻¹ (active rows × 3n), a thread per entry, the dof fastest: A₀⁻¹ is symmetric, so
-    each thread reads rows of it and neighbouring threads neighbouring entries."""
-    for i, k in ti.ndrange(Ut.shape[0], Ut.shape[1]):
-        s = 0.0
-        for l in range(count[i]):
-            e = jd_ptr[l] + i
-            b = 3 * node[e]
-            for c in ti.static(range(3)):
-                s += hr[e, c] * C0[b + c, k]
-        Ut[i, k] = s
-
-
-@ti.kernel
-def _add_delassus(perm: ti.types.ndarray(), count: ti.types.ndarray(), jd_ptr: ti.types.ndarray(),
-                  node: ti.types.ndarray(), hr: ti.types.ndarray(), Ut: ti.types.ndarray(), h: float,
-                  W: ti.types.ndarray()):
-    """Kernel 2: W[perm i, perm j] += h (Hr U)(i, j), a thread per entry of W (the row of Uᵀ it
-    reads is shared by neighbouring threads); W is symmetric, so the upper triangle is computed and
-    mirrored."""
-    for j, i in ti.ndrange(Ut.shape[0], Ut.shape[0]):
-        if i >= j:
-            s = 0.0
-            for l in range(count[i]):
-                e = jd_ptr[l] + i
-                a = 3 * node[e]
-                for c in ti.static(range(3)):
-                    s += hr[e, c] * Ut[j, a + c]
-            W[perm[i], perm[j]] += h * s
-            if i != j:
-                W[perm[j], perm[i]] += h * s
-
-
-@ti.kernel
-def _correct(Ut: ti.types.ndarray(), perm: ti.types.ndarray(), lam: ti.types.ndarray(), R: ti.template(),
-             x: ti.template(), v: ti.template(), h: float):
-    """dx = R h A₀⁻¹ (H R)ᵀ λ = R h U λ, a thread per node; x += dx, v += dx / h."""
-    for k in x:
+def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), R: ti.template(),
+              C0: ti.template(), hr: ti.template(), U: ti.template(), jds: ti.types.ndarray(),
+              value: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
+              n_touched: ti.i32, h: float, tol: float, add: ti.template(), serial: ti.template()):
+    """One launch, four loops (parallel; on one thread for small bodies on the CPU): the nodal
+    rotations; kernel 1, Hr = H R (a 3×3 block each); U = A₀⁻¹ Hrᵀ on the touched dofs only;
+    kernel 2, W += h Hr U (when `add`)."""
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+    ti.loop_config(serialize=serial)
+    for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
+        R[v] = _nodal_rotation(Re, offsets, incidence, v, tol)
+    ti.loop_config(serialize=serial)
+    for e in range(nnz):                            # kernel 1
+        V = ti.Matrix.zero(float, 3, 3)
+        for a, b in ti.static(ti.ndrange(3, 3)):
+            V[a, b] = value[e, a, b]
+        hr[e] = V @ R[jds[o_node + e]]
+    d = 3 * n_touched
+    # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) A₀⁻¹(block's dofs, m). A₀⁻¹ is
+    # symmetric and m runs fastest, so neighbouring threads read neighbouring entries of a row.
+    ti.loop_config(serialize=serial)
+    for i, m in ti.ndrange(n_active, d):
+        col = 3 * jds[o_touched + m // 3] + m % 3
         s = ti.Vector([0.0, 0.0, 0.0])
-        for i in range(Ut.shape[0]):
-            li = lam[perm[i]]
+        for l in range(jds[o_count + i]):
+            e = jds[o_ptr + l] + i
+            b = 3 * jds[o_node + e]
+            s += hr[e] @ ti.Vector([C0[b, col], C0[b + 1, col], C0[b + 2, col]])
+        U[i * d + m] = s
+    if ti.static(add):
+        # Kernel 2: the 3×3 block (i, j) of W is h U(i, j's dofs) Hr(j, ·)ᵀ; upper triangle, mirrored.
+        ti.loop_config(serialize=serial)
+        for i, j in ti.ndrange(n_active, n_active):
+            if j >= i:
+                B = ti.Matrix.zero(float, 3, 3)
+                for l in range(jds[o_count + j]):
+                    e = jds[o_ptr + l] + j
+                    a = i * d + 3 * jds[o_local + e]
+                    B += ti.Matrix.cols([U[a], U[a + 1], U[a + 2]]) @ hr[e].transpose()
+                ri, rj = 3 * jds[i], 3 * jds[j]
+                for p, q in ti.static(ti.ndrange(3, 3)):
+                    W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
+                if i != j:
+                    for p, q in ti.static(ti.ndrange(3, 3)):
+                        W[rj + q, ri + p] = W[rj + q, ri + p] + h * B[p, q]
+
+
+@ti.kernel
+def _correct(R: ti.template(), C0: ti.template(), hr: ti.template(), r0: ti.template(),
+             jds: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.template(), v: ti.template(),
+             n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, serial: ti.template()):
+    """r₀ = (H R)ᵀ λ on the touched dofs (serial: a fixed summation order), then per node
+    dx = R h A₀⁻¹ r₀ (a gather over the touched columns), x += dx, v += dx / h."""
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+    ti.loop_config(serialize=serial)
+    for t in range(n_touched):
+        r0[t] = ti.Vector([0.0, 0.0, 0.0])
+    ti.loop_config(serialize=True)                  # a fixed summation order, no races
+    for i in range(n_active):
+        ri = 3 * jds[i]
+        li = ti.Vector([lam[ri], lam[ri + 1], lam[ri + 2]])
+        for l in range(jds[o_count + i]):
+            e = jds[o_ptr + l] + i
+            a = jds[o_local + e]
+            r0[a] = r0[a] + hr[e].transpose() @ li
+    ti.loop_config(serialize=serial)
+    for k in range(x.shape[0]):
+        # A₀⁻¹ is symmetric: read its touched rows, where neighbouring nodes are neighbouring entries.
+        s = ti.Vector([0.0, 0.0, 0.0])
+        for t in range(n_touched):
+            row = 3 * jds[o_touched + t]
+            g = r0[t]
             for c in ti.static(range(3)):
-                s[c] += Ut[i, 3 * k + c] * li
+                s[c] += C0[row, 3 * k + c] * g[0] + C0[row + 1, 3 * k + c] * g[1] + C0[row + 2, 3 * k + c] * g[2]
         dx = h * (R[k] @ s)
-        x[k] += dx
-        v[k] += dx / h
+        x[k] = x[k] + dx
+        v[k] = v[k] + dx / h
 
 
 class WarpedCompliance:
-    """One soft body's rest compliance A₀⁻¹ (dense, on the device) and nodal rotations."""
+    """One soft body's rest compliance A₀⁻¹ (dense, on the device) and nodal rotations.
+
+    Per step: `prepare(jds)` takes the body's rows of H; `add_to(W)` computes, in one launch, the
+    nodal rotations, Hr = H R, U = A₀⁻¹ Hrᵀ restricted to the dofs the rows touch, and
+    W += h Hr U; `correct(λ)` applies x += R h A₀⁻¹ Hrᵀ λ in one more launch.
+    """
 
     def __init__(self, solver):
         fem = solver.fem
@@ -133,13 +200,20 @@ class WarpedCompliance:
         C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
                              rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
         self.C0_host = 0.5 * (C0 + C0.T)          # symmetric to round-off; the kernels rely on it
-        self.C0 = ti.ndarray(dtype=self.real, shape=self.C0_host.shape)
+        self.C0 = ti.field(dtype=self.real, shape=self.C0_host.shape)
         self.C0.from_numpy(self.C0_host.astype(self._np))
         self.R = ti.Matrix.field(3, 3, self.real, fem.n_nodes)
+        self.r0 = ti.Vector.field(3, self.real, fem.n_nodes)
         self._tol = fem.rotation_tolerance
+        self.hr = self.U = None
+        self.jds, self._ready = None, False
+        # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
+        # costs more than it saves at a few hundred rows on 2 cores); parallel above.
+        self.serial = be.arch == "cpu" and fem.n_nodes < SERIAL_BELOW
 
     def update_rotations(self) -> None:
-        """Nodal rotations from the element rotations of the last free motion."""
+        """Nodal rotations from the element rotations of the last free motion (`add_to` also
+        computes them, in its own launch)."""
         fem = self.solver.fem
         _nodal_rotations(fem.R, fem.incidence_offsets, fem.incidence, self.R, self._tol)
 
@@ -147,25 +221,41 @@ class WarpedCompliance:
         return self.R.to_numpy().astype(np.float64)
 
     def prepare(self, jds: JaggedDiagonal) -> None:
-        """Kernel 1 (Hr = H R) and U = A₀⁻¹ Hrᵀ for this step's H."""
-        self.jds = jds
-        self.hr = np.empty((jds.nnz, 3), dtype=self._np)
-        self.Ut = np.empty((jds.n_active, self.C0.shape[0]), dtype=self._np)
-        if jds.nnz:
-            _rotate_rows(jds.value, jds.node, self.R, self.hr)
-            _compliance_rows(self.C0, jds.count, jds.jd_ptr, jds.node, self.hr, self.Ut)
+        """This step's rows of H (the work is done by `add_to`, or by `correct` without it)."""
+        self.jds, self._ready = jds, False
+        d = 3 * len(jds.touched)
+        # Scratch fields grow (a new field recompiles the kernels: rare, by doubling).
+        if self.hr is None or self.hr.shape[0] < jds.nnz:
+            self.hr = ti.Matrix.field(3, 3, self.real, max(1024, 2 * jds.nnz))
+        if self.U is None or self.U.shape[0] < jds.n_active * d:
+            self.U = ti.Vector.field(3, self.real, max(1 << 16, 2 * jds.n_active * d))
+
+    def _args(self):
+        jds = self.jds
+        return (jds.packed, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched))
+
+    def _run(self, W, add: bool) -> None:
+        fem, jds = self.solver.fem, self.jds
+        packed, *sizes = self._args()
+        _delassus(fem.R, fem.incidence_offsets, fem.incidence, self.R, self.C0, self.hr, self.U, packed,
+                  jds.value, W, *sizes, self.solver.dt, self._tol, add, self.serial)
+        self._ready = True
 
     def add_to(self, W: np.ndarray) -> None:
         """W (n_rows², the backend's float type) += h (H R) A₀⁻¹ (H R)ᵀ."""
-        jds = self.jds
-        if jds.n_active:
-            _add_delassus(jds.perm, jds.count, jds.jd_ptr, jds.node, self.hr, self.Ut, self.solver.dt, W)
+        if self.jds.n_active:
+            self._run(W, True)
 
     def correct(self, lam: np.ndarray) -> None:
         """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's fields."""
         jds = self.jds
-        if jds.n_active:
-            _correct(self.Ut, jds.perm, lam.astype(self._np), self.R, self.solver.x, self.solver.v, self.solver.dt)
+        if not jds.n_active:
+            return
+        if not self._ready:
+            self._run(np.zeros((3, 3), self._np), False)
+        packed, *sizes = self._args()
+        _correct(self.R, self.C0, self.hr, self.r0, packed, np.ascontiguousarray(lam, dtype=self._np),
+                 self.solver.x, self.solver.v, *sizes, self.solver.dt, self.serial)
 
 
 class ExactCompliance:

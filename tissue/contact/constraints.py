@@ -14,12 +14,13 @@ moving), or held to a point Σ wⱼ yⱼ of another body.
   attachments  the position error x_free,p - target.
 With the reactions λ (impulses) the constrained values are δ = δ_free + W λ (see compliance.py).
 
-JDS. H is sparse with 1×3 blocks (a row touches one node per body for a vertex, up to three for a
-point on a triangle).
-Per body, its rows that touch it are sorted by their number of blocks (descending) and the blocks
-stored "jagged diagonal" by "jagged diagonal": the k-th block of every row that has more than k
-blocks, in sorted-row order, then the (k+1)-th, ... So the k-th block of sorted row i is at
-jd_ptr[k] + i, and the threads of consecutive rows read consecutive memory (coalesced on a GPU).
+JDS. H is 3×3-block sparse (paper §3.5): the three rows of a contact touch the same nodes (one per
+body for a vertex, up to three for a point on a triangle), so block row t (rows 3t..3t+2) has a
+3×3 block at each of them. Per body, its block rows that touch it are sorted by their number of
+blocks (descending) and the blocks stored "jagged diagonal" by "jagged diagonal": the k-th block
+of every block row that has more than k blocks, in sorted order, then the (k+1)-th, ... So the
+k-th block of sorted block row i is at jd_ptr[k] + i, and the threads of consecutive block rows
+read consecutive memory (coalesced on a GPU).
 """
 
 from __future__ import annotations
@@ -76,13 +77,16 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
 
 @dataclass
 class ConstraintRows:
-    """The rows of H as entries (row, body, node, 1×3 value), and δ_free.
+    """The rows of H as 3×3 blocks, and δ_free.
 
-    Rows [0, 3 n_contacts) are the contacts (n, t1, t2 each); the rest are attachments."""
+    Block row t is rows 3t, 3t+1, 3t+2: contact t's (n, t1, t2) for t < n_contacts, then each
+    attachment's three axes. Entry e is the block of block row `block[e]` at node `node[e]` of
+    soft body `body[e]` (`value[e]`, 3×3: the three rows' 1×3 entries there; a frictionless
+    contact's tangent rows are zero). A block row may hold two blocks at one node (they add)."""
 
     n_rows: int
     n_contacts: int
-    row: np.ndarray
+    block: np.ndarray
     body: np.ndarray
     node: np.ndarray
     value: np.ndarray
@@ -91,10 +95,10 @@ class ConstraintRows:
 
     def body_matrix(self, body: int, n_nodes: int) -> sp.csr_matrix:
         """Body `body`'s block of H as a sparse (n_rows × 3 n_nodes) matrix."""
-        sel = self.body == body
-        r = np.repeat(self.row[sel], 3)
-        c = (3 * self.node[sel][:, None] + np.arange(3)).ravel()
-        return sp.csr_matrix((self.value[sel].ravel(), (r, c)), shape=(self.n_rows, 3 * n_nodes))
+        sel = np.flatnonzero(self.body == body)
+        r = np.broadcast_to((3 * self.block[sel])[:, None, None] + np.arange(3)[:, None], (len(sel), 3, 3))
+        c = np.broadcast_to((3 * self.node[sel])[:, None, None] + np.arange(3), (len(sel), 3, 3))
+        return sp.csr_matrix((self.value[sel].ravel(), (r.ravel(), c.ravel())), shape=(self.n_rows, 3 * n_nodes))
 
 
 def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0,
@@ -102,45 +106,44 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
     """H and δ_free for the contacts and attachments; free/prev: per body (n, 3) positions after
     the free motion and at the start of the step.
 
-    frictionless: (k,) bool; those contacts' tangent rows are left empty (their reactions are zero
-    whatever W says there), which spares two thirds of their share of W and of the correction."""
+    frictionless: (k,) bool; those contacts' tangent rows are zero (their reactions are zero
+    whatever W says there)."""
     k = len(contacts)
     frames = tangent_frames(contacts.normal) if k else np.zeros((0, 3, 3))
-    row, body, node, value = [], [], [], []
-    rows3 = 3 * np.arange(k)[:, None] + np.arange(3)              # (k, 3)
-    if frictionless is not None:
-        rows3 = np.where(np.asarray(frictionless)[:, None] & (np.arange(3) > 0), -1, rows3)
-    disp = -contacts.other_motion
-    for j in range(3):                                            # the point's own blocks: u_j d
-        own = np.flatnonzero(contacts.own_weights[:, j] != 0)
-        row.append(rows3[own].ravel())
-        body.append(np.repeat(contacts.body[own], 3))
-        node.append(np.repeat(contacts.nodes[own, j], 3))
-        value.append((contacts.own_weights[own, j, None, None] * frames[own]).reshape(-1, 3))
-        for b in np.unique(contacts.body[own]):
-            sel = own[contacts.body[own] == b]
-            nodes = contacts.nodes[sel, j]
-            disp[sel] += contacts.own_weights[sel, j, None] * (free[b][nodes] - prev[b][nodes])
+    directions = frames
+    if frictionless is not None and np.any(frictionless):
+        directions = frames * np.where(np.asarray(frictionless)[:, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
+    # Every body's step displacement in one array (body b's nodes from offset[b]).
+    offset = np.r_[0, np.cumsum([len(f) for f in free])]
+    moved = np.concatenate([np.asarray(f, dtype=np.float64) - p for f, p in zip(free, prev)]) if len(free) \
+        else np.zeros((0, 3))
+    contact = np.arange(k)
+    # The point's own blocks u_j d (weights 0 left out), then the other triangle's -w_j d.
+    own = contacts.own_weights != 0
+    kk, jj = np.nonzero(own)
     soft = np.flatnonzero(contacts.soft)
-    for j in range(3):                                            # the triangle's blocks: -w_j d
-        row.append(rows3[soft].ravel())
-        body.append(np.repeat(contacts.other[soft], 3))
-        node.append(np.repeat(contacts.triangle[soft, j], 3))
-        value.append((-contacts.weights[soft, j, None, None] * frames[soft]).reshape(-1, 3))
-        for b in np.unique(contacts.other[soft]):
-            sel = soft[contacts.other[soft] == b]
-            nodes = contacts.triangle[sel, j]
-            disp[sel] -= contacts.weights[sel, j, None] * (free[b][nodes] - prev[b][nodes])
-    q = np.einsum("kij,kj->ki", frames, disp)
+    block = [contact[kk], np.repeat(soft, 3)]
+    body = [contacts.body[kk], np.repeat(contacts.other[soft], 3)]
+    node = [contacts.nodes[kk, jj], contacts.triangle[soft].ravel()]
+    value = [contacts.own_weights[kk, jj, None, None] * directions[kk],
+             -contacts.weights[soft].reshape(-1)[:, None, None] * np.repeat(directions[soft], 3, axis=0)]
+    # δ_free: the gap, and the relative displacement of the two material points along t1, t2.
+    disp = -contacts.other_motion.copy()
+    if k:
+        disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved[offset[contacts.body][:, None] + contacts.nodes])
+    if len(soft):
+        tri = offset[contacts.other[soft]][:, None] + contacts.triangle[soft]
+        disp[soft] -= np.einsum("kj,kjc->kc", contacts.weights[soft], moved[tri])
+    q = np.einsum("kij,kj->ki", directions, disp)
     q[:, 0] = contacts.gap
-    q[rows3 < 0] = 0.0
     q = [q.ravel()]
+    eye = np.eye(3)[None]
     for a, att in enumerate(attachments):
-        r = 3 * k + 3 * a + np.arange(3)
-        row.append(r)
-        body.append(np.full(3, att.body))
-        node.append(np.full(3, att.node))
-        value.append(np.eye(3))
+        t = k + a
+        block.append(np.array([t]))
+        body.append(np.array([att.body]))
+        node.append(np.array([att.node]))
+        value.append(eye)
         p = free[att.body][att.node]
         if att.other_body is None:
             target = att.target(time)
@@ -148,56 +151,65 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
             w = np.asarray(att.weights, dtype=np.float64)
             nodes = np.asarray(att.other_nodes)
             target = w @ free[att.other_body][nodes]
-            for wj, nj in zip(w, nodes):
-                row.append(r)
-                body.append(np.full(3, att.other_body))
-                node.append(np.full(3, nj))
-                value.append(-wj * np.eye(3))
+            block.append(np.full(len(nodes), t))
+            body.append(np.full(len(nodes), att.other_body))
+            node.append(nodes)
+            value.append(-w[:, None, None] * eye)
         q.append(p - target)
-    row, body, node = (np.concatenate(a).astype(np.int32) for a in (row, body, node))
-    value = np.concatenate(value).reshape(-1, 3)
-    keep = row >= 0
-    return ConstraintRows(n_rows=3 * k + 3 * len(attachments), n_contacts=k, row=row[keep], body=body[keep],
-                          node=node[keep], value=value[keep], q=np.concatenate(q), frames=frames)
+    block, body, node = (np.concatenate(a).astype(np.int32) for a in (block, body, node))
+    return ConstraintRows(n_rows=3 * k + 3 * len(attachments), n_contacts=k, block=block, body=body, node=node,
+                          value=np.concatenate(value).reshape(-1, 3, 3), q=np.concatenate(q), frames=frames)
 
 
 class JaggedDiagonal:
-    """One body's block of H in Jagged Diagonal Storage, on the device.
+    """One body's block of H in Jagged Diagonal Storage of 3×3 blocks (paper §3.5), as numpy arrays.
 
-    perm[i]       the H row of sorted row i (rows sorted by block count, descending; only rows that
-                  touch the body are kept: n_active of them)
+    Block rows that touch the body (see ConstraintRows) are sorted by their number of blocks
+    (descending) and their blocks stored jagged diagonal by jagged diagonal, so the threads of
+    consecutive block rows read consecutive memory (coalesced on a GPU):
+
+    perm[i]       the block row of sorted block row i (n_active of them)
     count[i]      its number of blocks
-    jd_ptr[k]     start of jagged diagonal k; block k of sorted row i is entry jd_ptr[k] + i
-    node[e], value[e] (1×3), row[e]   per entry
+    jd_ptr[k]     start of jagged diagonal k; block k of sorted block row i is entry jd_ptr[k] + i
+    node[e], value[e] (3×3), row[e]   per entry (row: its block row)
+    touched       the nodes the body's rows touch (sorted); local[e]: node[e]'s index among them
+    packed        [perm | count | jd_ptr | node | local | touched], int32: one kernel argument
 
-    The arrays are numpy (int32, and the backend's float type), contiguous, handed to the kernels
-    as they are: on the CPU without a copy, on a GPU with one transfer per launch.
+    Contiguous numpy arrays (int32, and the backend's float type): handed to the kernels as they
+    are, on the CPU without a copy, on a GPU with one transfer per launch.
     """
 
     def __init__(self, rows: ConstraintRows, body: int):
         sel = np.flatnonzero(rows.body == body)
-        r, nodes, values = rows.row[sel], rows.node[sel], rows.value[sel]
-        count = np.bincount(r, minlength=rows.n_rows)
+        n_block_rows = rows.n_rows // 3
+        t = rows.block[sel]
+        by_row = np.argsort(t, kind="stable")         # a block row's entries keep their order
+        count = np.bincount(t, minlength=n_block_rows)
         order = np.argsort(-count, kind="stable")
         self.n_active = int(np.count_nonzero(count))
-        perm = order[:self.n_active]
-        position = np.empty(rows.n_rows, dtype=np.int64)
-        position[order] = np.arange(rows.n_rows)
-        by_row = np.argsort(r, kind="stable")
+        position = np.empty(n_block_rows, dtype=np.int64)
+        position[order] = np.arange(n_block_rows)
         starts = np.r_[0, np.cumsum(count)]
-        rank = np.empty(len(r), dtype=np.int64)
-        rank[by_row] = np.arange(len(r)) - starts[r[by_row]]
-        lengths = np.array([np.count_nonzero(count > k) for k in range(int(count.max(initial=0)))], dtype=np.int64)
+        rank = np.empty(len(t), dtype=np.int64)
+        rank[by_row] = np.arange(len(t)) - starts[t[by_row]]
+        k_max = int(count.max(initial=0))
+        lengths = np.count_nonzero(count[:, None] > np.arange(k_max), axis=0) if k_max else np.zeros(0, np.int64)
         jd_ptr = np.r_[0, np.cumsum(lengths)]
-        index = jd_ptr[rank] + position[r]
+        index = jd_ptr[rank] + position[t]
         real = np.float64 if backend.current().real == ti.f64 else np.float32
-        self.nnz = len(r)
-        self.perm, self.count = perm.astype(np.int32), count[perm].astype(np.int32)
+        self.nnz = len(t)
+        self.perm, self.count = order[:self.n_active].astype(np.int32), count[order[:self.n_active]].astype(np.int32)
         self.jd_ptr = jd_ptr.astype(np.int32)
         self.node = np.empty(self.nnz, np.int32)
-        self.value = np.empty((self.nnz, 3), real)
+        self.value = np.empty((self.nnz, 3, 3), real)
         self.row = np.empty(self.nnz, np.int32)
-        self.node[index], self.value[index], self.row[index] = nodes, values, r
+        self.node[index], self.value[index], self.row[index] = rows.node[sel], rows.value[sel], t
+        # The nodes the body's rows touch and each entry's index among them: W needs the
+        # compliance only between these (3 × touched columns of A₀⁻¹, not all 3n).
+        self.touched, local = np.unique(self.node, return_inverse=True)
+        self.local = local.astype(np.int32).reshape(-1)
+        self.touched = self.touched.astype(np.int32)
+        self.packed = np.concatenate([self.perm, self.count, self.jd_ptr, self.node, self.local, self.touched])
 
     def to_dense(self, n_rows: int, n_nodes: int) -> np.ndarray:
         """The block as a dense (n_rows × 3 n_nodes) matrix, read back from the JDS arrays."""
@@ -205,5 +217,6 @@ class JaggedDiagonal:
         for k in range(len(self.jd_ptr) - 1):
             for i in range(self.jd_ptr[k + 1] - self.jd_ptr[k]):
                 e = self.jd_ptr[k] + i
-                H[self.perm[i], 3 * self.node[e]:3 * self.node[e] + 3] += self.value[e]
+                t, a = self.perm[i], self.node[e]
+                H[3 * t:3 * t + 3, 3 * a:3 * a + 3] += self.value[e]
         return H

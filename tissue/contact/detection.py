@@ -10,17 +10,21 @@ side where p belongs) and the gap g = n·(p - c) (negative when p has penetrated
 contacts c is a point of a triangle of the other body with barycentric weights w, so
 g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
 
-  soft–rigid  one thread per (sample, obstacle) pair in a Taichi kernel, the nearest of the
-              obstacle's primitives in the obstacle's frame; triangle-mesh obstacles are queried
-              on the host with open3d (closest point, and inside/outside by ray parity).
+  soft–rigid  one thread per (sample, obstacle) pair, the nearest of the obstacle's primitives
+              in the obstacle's frame, skipping those whose bounding ball is beyond the alarm
+              distance; triangle-mesh obstacles are queried on the host with open3d (closest
+              point, and inside/outside by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
-              distance, binned in a uniform grid (built each step with a sort in numpy); narrow
-              phase: one thread per sample, exact point–triangle distance to the triangles of its
-              cell (Ericson's Voronoi-region test). Inside/outside is the sign of (p - c) against
-              the interpolated area-weighted vertex normal at c, which stays right at edges and
-              corners where a face normal can point either way. Both directions are detected
-              (samples of A against triangles of B and of B against A).
+              distance, binned in a uniform grid built on the device each step (box, counting
+              sort); narrow phase: one thread per sample, exact point–triangle distance to the
+              triangles of its cell (Ericson's Voronoi-region test), ties to the lowest triangle
+              id. Inside/outside is the sign of (p - c) against the interpolated area-weighted
+              vertex normal at c, which stays right at edges and corners where a face normal can
+              point either way. Both directions are detected (samples of A against triangles of
+              B and of B against A).
 
+All of this for one body is ONE kernel launch (`_detect`, writing into a buffer kept between
+calls), which can also copy the body's positions and start-of-step positions for the constraints.
 Detection reads the positions after the free motion. Results come back as numpy arrays, sorted by
 (body, sample, kind, other), so runs are deterministic.
 """
@@ -36,6 +40,7 @@ from .obstacles import BOX, CAPSULE, PLANE, SPHERE
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
 SAMPLINGS = ("vertices", "edges", "faces")
+SERIAL_BELOW = 30_000      # contact points: below, the CPU runs the detection loops on one thread
 
 
 def surface_samples(faces: np.ndarray, sampling: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
@@ -94,6 +99,16 @@ class Contacts:
             return Contacts.empty()
         c = Contacts(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Contacts)))
         return c.take(np.lexsort((c.other, c.soft, c.sample, c.body)))
+
+    @staticmethod
+    def join(parts: list["Contacts"]) -> "Contacts":
+        """Concatenate parts that are already in order (no sort)."""
+        parts = [p for p in parts if len(p)]
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return Contacts.empty()
+        return Contacts(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Contacts)))
 
     def take(self, index) -> "Contacts":
         return Contacts(*(getattr(self, f.name)[index] for f in fields(Contacts)))
@@ -170,73 +185,9 @@ def _closest_primitive(prm: ti.template(), k, p):
 
 
 @ti.func
-def sample_position(x: ti.template(), nodes: ti.template(), weights: ti.template(), s):
-    return weights[s, 0] * x[nodes[s, 0]] + weights[s, 1] * x[nodes[s, 1]] + weights[s, 2] * x[nodes[s, 2]]
-
-
-@ti.kernel
-def _rigid_kernel(x: ti.template(), nodes: ti.types.ndarray(), weights: ti.types.ndarray(),
-                  prm: ti.types.ndarray(), offsets: ti.types.ndarray(), poses: ti.types.ndarray(),
-                  out: ti.types.ndarray()):
-    for s, o in ti.ndrange(nodes.shape[0], offsets.shape[0] - 1):
-        R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
-                       [poses[o, 6], poses[o, 7], poses[o, 8]]])
-        t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-        p = R.transpose() @ (sample_position(x, nodes, weights, s) - t)
-        best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-        for k in range(offsets[o], offsets[o + 1]):
-            r = _closest_primitive(prm, k, p)
-            if r[0] < best[0]:
-                best = r
-        n = R @ ti.Vector([best[1], best[2], best[3]])
-        c = R @ ti.Vector([best[4], best[5], best[6]]) + t
-        out[s, o, 0] = best[0]
-        for i in ti.static(range(3)):
-            out[s, o, 1 + i] = n[i]
-            out[s, o, 4 + i] = c[i]
-
-
-# --------------------------------------------------------------------------------------------
-# soft–soft: grid broad phase (numpy), point–triangle narrow phase (Taichi)
-# --------------------------------------------------------------------------------------------
-
-def triangle_grid(points: np.ndarray, faces: np.ndarray, margin: float):
-    """Bin triangles (their boxes grown by `margin`) in a uniform grid.
-
-    Returns (origin (3,), cell size, dims (3,), offsets (cells+1,), triangle ids): the triangles
-    overlapping cell c are ids[offsets[c]:offsets[c+1]]; cell (i, j, k) is (i dims[1] + j) dims[2] + k.
-    """
-    tri = points[faces]
-    lo, hi = tri.min(axis=1) - margin, tri.max(axis=1) + margin
-    origin = lo.min(axis=0)
-    extent = hi.max(axis=0) - origin
-    cell = max(float(np.median((hi - lo).max(axis=1))), 1e-12)
-    dims = np.floor(extent / cell).astype(np.int64) + 1
-    while np.prod(dims) > GRID_MAX_CELLS:
-        cell *= 1.26
-        dims = np.floor(extent / cell).astype(np.int64) + 1
-    i0 = np.floor((lo - origin) / cell).astype(np.int64)
-    span = np.floor((hi - origin) / cell).astype(np.int64) - i0 + 1
-    count = span.prod(axis=1)
-    owner = np.repeat(np.arange(len(faces)), count)
-    j = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    sy, sz = span[owner, 1], span[owner, 2]
-    ijk = i0[owner] + np.stack([j // (sy * sz), (j // sz) % sy, j % sz], axis=1)
-    cells = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    order = np.argsort(cells, kind="stable")
-    offsets = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(cells, minlength=int(np.prod(dims))), out=offsets[1:])
-    return origin, cell, dims, offsets, owner[order]
-
-
-def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit normals at the nodes (zero at nodes off the surface)."""
-    tri = points[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = np.zeros_like(points)
-    for i in range(3):
-        np.add.at(n, faces[:, i], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+def _sample(x: ti.template(), nodes: ti.template(), weights: ti.template(), s):
+    n, w = nodes[s], weights[s]
+    return w[0] * x[n[0]] + w[1] * x[n[1]] + w[2] * x[n[2]]
 
 
 @ti.func
@@ -271,61 +222,214 @@ def closest_on_triangle(p, a, b, c):
     return w
 
 
+@ti.func
+def _near(balls: ti.template(), k, p, alarm):
+    """Whether p may lie within `alarm` of what ball k (centre, radius; < 0: unbounded) bounds."""
+    r = balls[k, 3]
+    d = p - _p3(balls, k, 0)
+    return r < 0.0 or d.dot(d) <= (r + alarm) * (r + alarm)
+
+
+@ti.func
+def _cell_range(lo, hi, origin, cell, dims):
+    a = ti.max(ti.cast(ti.floor((lo - origin) / cell), ti.i32), 0)
+    b = ti.min(ti.cast(ti.floor((hi - origin) / cell), ti.i32), dims - 1)
+    return a, b
+
+
 @ti.kernel
-def _soft_kernel(xa: ti.template(), nodes: ti.types.ndarray(), weights: ti.types.ndarray(), xb: ti.template(),
-                 faces: ti.types.ndarray(), normals: ti.types.ndarray(), grid: ti.types.ndarray(),
-                 dims: ti.types.ndarray(), offsets: ti.types.ndarray(), ids: ti.types.ndarray(),
-                 alarm: float, out: ti.types.ndarray(), out_face: ti.types.ndarray()):
-    for s in range(nodes.shape[0]):
-        p = sample_position(xa, nodes, weights, s)
-        origin = ti.Vector([grid[0], grid[1], grid[2]])
-        ijk = ti.cast(ti.floor((p - origin) / grid[3]), ti.i32)
-        best, best_face = 1e300, -1
-        best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
-        if 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
-            cell = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
-            for k in range(offsets[cell], offsets[cell + 1]):
-                f = ids[k]
-                a, b, c = xb[faces[f, 0]], xb[faces[f, 1]], xb[faces[f, 2]]
-                w = closest_on_triangle(p, a, b, c)
-                q = w[0] * a + w[1] * b + w[2] * c
-                d = (p - q).norm()
-                if d < best:
-                    best, best_face, best_w, best_c = d, f, w, q
-        out[s, 0] = 1e300
-        out_face[s] = -1
-        if best_face >= 0 and best <= alarm:
-            f = best_face
-            a, b, c = xb[faces[f, 0]], xb[faces[f, 1]], xb[faces[f, 2]]
-            vn = ti.Vector([0.0, 0.0, 0.0])
+def _detect(xa: ti.template(), nodes: ti.template(), weights: ti.template(), prm: ti.template(),
+            prm_offsets: ti.template(), prm_bounds: ti.template(), bounds: ti.template(), poses: ti.types.ndarray(),
+            xb: ti.template(), faces: ti.template(), surface: ti.template(), vf_offsets: ti.template(),
+            vf: ti.template(), normals: ti.template(),
+            start: ti.template(), cursor: ti.template(), ids: ti.template(), grid_i: ti.template(),
+            grid_f: ti.template(), cell0: float, alarm: float, slot: ti.i32, out: ti.types.ndarray(),
+            va: ti.template(), h: float, state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(),
+            copy_state: ti.template(), serial: ti.template()):
+    """The contact candidates of body A's samples, in one launch. out[s, slot] = [gap, normal (3),
+    closest point (3), weights on B's triangle (3), triangle id (-1 rigid)]; gap 1e300: none.
+
+    rigid: every (sample, obstacle) pair, the nearest of the obstacle's primitives (slot = the
+    obstacle). soft (against body B, in `slot`): B's triangle grid (box, counting sort), B's
+    vertex normals, then per sample the nearest triangle of its cell within `alarm`.
+    copy_state: also state[k] = (x_k, x_k - h v_k) for A's nodes (the constraints need them)."""
+    ns = nodes.shape[0]
+    if ti.static(copy_state):                       # A's (x, x - h v): the free and start positions
+        ti.loop_config(serialize=serial)
+        for k in range(xa.shape[0]):
+            p, u = xa[k], va[k]
+            for c in ti.static(range(3)):
+                state[k, c] = p[c]
+                state[k, 3 + c] = p[c] - h * u[c]
+    if ti.static(rigid):
+        ti.loop_config(serialize=serial)
+        for s, o in ti.ndrange(ns, prm_offsets.shape[0] - 1):
+            R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
+                           [poses[o, 6], poses[o, 7], poses[o, 8]]])
+            t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
+            p = R.transpose() @ (_sample(xa, nodes, weights, s) - t)
+            best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+            # Bounding balls (radius < 0: unbounded, a plane): a primitive whose ball is farther
+            # than `alarm` cannot be within it, so it is skipped (the obstacle's ball: all of them).
+            if _near(bounds, o, p, alarm):
+                for k in range(prm_offsets[o], prm_offsets[o + 1]):
+                    if _near(prm_bounds, k, p, alarm):
+                        r = _closest_primitive(prm, k, p)
+                        if r[0] < best[0]:
+                            best = r
+            out[s, o, 0] = best[0]
+            if best[0] <= alarm:                    # the host reads the rest of hits only
+                n = R @ ti.Vector([best[1], best[2], best[3]])
+                c = R @ ti.Vector([best[4], best[5], best[6]]) + t
+                for i in ti.static(range(3)):
+                    out[s, o, 1 + i] = n[i]
+                    out[s, o, 4 + i] = c[i]
+                    out[s, o, 7 + i] = 0.0
+                out[s, o, 10] = -1.0
+    if ti.static(soft):
+        nf = faces.shape[0]
+        ti.loop_config(serialize=serial)
+        for _ in range(1):                          # serial: the grid's box, cell size and dims
+            lo = ti.Vector([1e300, 1e300, 1e300])
+            hi = -lo
+            for k in range(surface.shape[0]):
+                p = xb[surface[k]]
+                lo, hi = ti.min(lo, p), ti.max(hi, p)
+            lo -= alarm
+            hi += alarm
+            cell = cell0
+            extent = (hi - lo) / cell
+            while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
+                cell *= 1.26
+                extent = (hi - lo) / cell
+            dims = ti.cast(ti.floor(extent), ti.i32) + 1
             for i in ti.static(range(3)):
-                vn += best_w[i] * ti.Vector([normals[faces[f, i], 0], normals[faces[f, i], 1],
-                                             normals[faces[f, i], 2]])
-            d = p - best_c
-            n = (b - a).cross(c - a).normalized()
-            g = 0.0
-            if best > 1e-12 * ((b - a).norm() + (c - a).norm()):
-                side = 1.0 if d.dot(vn) >= 0.0 else -1.0
-                n = side * d / best
-                g = side * best
-            out[s, 0] = g
-            for i in ti.static(range(3)):
-                out[s, 1 + i] = n[i]
-                out[s, 4 + i] = best_w[i]
-                out[s, 7 + i] = best_c[i]
-            out_face[s] = f
+                grid_f[i] = lo[i]
+                grid_i[i] = dims[i]
+            grid_f[3] = cell
+            grid_i[3] = dims[0] * dims[1] * dims[2]
+        origin = ti.Vector([grid_f[0], grid_f[1], grid_f[2]])
+        cell = grid_f[3]
+        dims = ti.Vector([grid_i[0], grid_i[1], grid_i[2]])
+        ti.loop_config(serialize=serial)
+        for c in range(grid_i[3] + 1):
+            start[c] = 0
+        ti.loop_config(serialize=serial)
+        for f in range(nf):                         # count the triangles of each cell
+            a, b, c = xb[faces[f][0]], xb[faces[f][1]], xb[faces[f][2]]
+            i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+            for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
+                ti.atomic_add(start[(i * dims[1] + j) * dims[2] + k + 1], 1)
+        ti.loop_config(serialize=serial)
+        for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
+            for c in range(grid_i[3]):
+                start[c + 1] += start[c]
+                cursor[c] = start[c]
+            grid_i[4] = start[grid_i[3]]
+            out[ns, slot, 0] = ti.cast(grid_i[4], float)   # the host grows `ids` if it overflowed
+        ti.loop_config(serialize=serial)
+        for f in range(nf):                         # fill (order within a cell: any; see below)
+            if grid_i[4] <= ids.shape[0]:
+                a, b, c = xb[faces[f][0]], xb[faces[f][1]], xb[faces[f][2]]
+                i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+                for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
+                    ids[ti.atomic_add(cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
+        ti.loop_config(serialize=serial)
+        for k in range(surface.shape[0]):           # area-weighted vertex normals (a fixed order)
+            nv = ti.Vector([0.0, 0.0, 0.0])
+            for m in range(vf_offsets[k], vf_offsets[k + 1]):
+                f = faces[vf[m]]
+                nv += (xb[f[1]] - xb[f[0]]).cross(xb[f[2]] - xb[f[0]])
+            normals[surface[k]] = nv / ti.max(nv.norm(), 1e-300)
+        ti.loop_config(serialize=serial)
+        for s in range(ns):                         # narrow phase
+            out[s, slot, 0] = 1e300
+            out[s, slot, 10] = -1.0
+            p = _sample(xa, nodes, weights, s)
+            ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
+            best, best_face = 1e300, -1
+            best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
+            if grid_i[4] <= ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
+                    and 0 <= ijk[2] < dims[2]:
+                cid = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
+                for m in range(start[cid], start[cid + 1]):
+                    f = ids[m]
+                    a, b, c = xb[faces[f][0]], xb[faces[f][1]], xb[faces[f][2]]
+                    w = closest_on_triangle(p, a, b, c)
+                    q = w[0] * a + w[1] * b + w[2] * c
+                    d = (p - q).norm()
+                    # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
+                    # id, so the result does not depend on the order the cell was filled in.
+                    if d < best or (d == best and f < best_face):
+                        best, best_face, best_w, best_c = d, f, w, q
+            if best_face >= 0 and best <= alarm:
+                f = faces[best_face]
+                a, b, c = xb[f[0]], xb[f[1]], xb[f[2]]
+                vn = best_w[0] * normals[f[0]] + best_w[1] * normals[f[1]] + best_w[2] * normals[f[2]]
+                d = p - best_c
+                n = (b - a).cross(c - a).normalized()
+                g = 0.0
+                if best > 1e-12 * ((b - a).norm() + (c - a).norm()):
+                    side = 1.0 if d.dot(vn) >= 0.0 else -1.0
+                    n = side * d / best
+                    g = side * best
+                out[s, slot, 0] = g
+                for i in ti.static(range(3)):
+                    out[s, slot, 1 + i] = n[i]
+                    out[s, slot, 4 + i] = best_c[i]
+                    out[s, slot, 7 + i] = best_w[i]
+                out[s, slot, 10] = ti.cast(best_face, float)
+
+
+@ti.kernel
+def read_state(x: ti.template(), v: ti.template(), h: float, out: ti.types.ndarray()):
+    """out[k] = (x_k, x_k - h v_k): the free positions and those at the start of the step."""
+    for k in x:
+        p, u = x[k], v[k]
+        for c in ti.static(range(3)):
+            out[k, c] = p[c]
+            out[k, 3 + c] = p[c] - h * u[c]
 
 
 # --------------------------------------------------------------------------------------------
 # the detector
 # --------------------------------------------------------------------------------------------
 
-def _nd(a, dtype):
-    """A device copy of a constant array (per-step arrays go to kernels as numpy: no allocation)."""
-    a = np.ascontiguousarray(a)
-    arr = ti.ndarray(dtype=dtype, shape=a.shape)
-    arr.from_numpy(a)
-    return arr
+def _field(values: np.ndarray, dtype, n: int = 0):
+    """A constant Taichi field (a vector field of n components when n > 0) holding `values`."""
+    values = np.ascontiguousarray(values)
+    shape = max(1, len(values))
+    f = ti.Vector.field(n, dtype, shape) if n else ti.field(dtype, shape)
+    if len(values):
+        f.from_numpy(values)
+    return f
+
+
+class _Surface:
+    """One body's constant detection data on the device, and its output buffer."""
+
+    def __init__(self, faces, samples, n_nodes, n_slots, real, npr):
+        nodes, weights = samples
+        self.faces_np = faces
+        self.n_samples = len(nodes)
+        self.nodes, self.weights = _field(nodes, ti.i32, 3), _field(weights.astype(npr), real, 3)
+        self.faces = _field(faces, ti.i32, 3)
+        surface = np.unique(faces).astype(np.int32)
+        self.surface = _field(surface, ti.i32)
+        # Faces around each surface node (CSR, ascending face id), for the vertex normals.
+        corner_node = np.searchsorted(surface, faces.reshape(-1))
+        order = np.argsort(corner_node, kind="stable")
+        offsets = np.zeros(len(surface) + 1, np.int32)
+        np.cumsum(np.bincount(corner_node, minlength=len(surface)), out=offsets[1:])
+        self.vf_offsets, self.vf = _field(offsets, ti.i32), _field((order // 3).astype(np.int32), ti.i32)
+        self.normals = ti.Vector.field(3, real, max(n_nodes, 1))
+        # The grid of this body's triangles (built on the device at each detection).
+        self.start = ti.field(ti.i32, GRID_MAX_CELLS + 1)
+        self.cursor = ti.field(ti.i32, GRID_MAX_CELLS)
+        self.ids = ti.field(ti.i32, max(1024, 27 * len(faces)))
+        self.grid_i, self.grid_f = ti.field(ti.i32, 8), ti.field(real, 4)
+        self.cell = None                          # base cell size: set at the first detection
+        self.out = np.empty((self.n_samples + 1, n_slots, 11), npr)
 
 
 class Detector:
@@ -334,13 +438,14 @@ class Detector:
     surfaces: per soft body, its boundary triangles (k, 3) as node ids, outward; sampling: which
     contact points each body's surface carries (see `surface_samples`).
     The positions passed to `detect` are per body a Taichi vector field (the solver's `x`, read in
-    place) or an (n, 3) numpy array.
+    place) or an (n, 3) numpy array. Each body's detection is one kernel launch (two or more only
+    with three or more soft bodies), writing into a buffer kept between calls.
     """
 
     def __init__(self, surfaces, obstacles=(), soft_soft: bool = True, sampling: str = "vertices"):
         be = backend.current()
         self.real, self._np = be.real, (np.float64 if be.real == ti.f64 else np.float32)
-        self.faces = [np.asarray(f, dtype=np.int32) for f in surfaces]
+        self.faces = [np.asarray(f, dtype=np.int32).reshape(-1, 3) for f in surfaces]
         self.samples = [surface_samples(f, sampling) for f in self.faces]
         self.samples = [(n, w.astype(self._np)) for n, w in self.samples]
         self.obstacles = list(obstacles)
@@ -348,10 +453,24 @@ class Detector:
         prims = [o.primitives for o in self.obstacles]
         counts = [len(p) for p in prims]
         self.has_primitives = sum(counts) > 0
+        self._prm = ti.field(self.real, (max(1, sum(counts)), 16))
         if self.has_primitives:
-            self._prm = _nd(np.concatenate(prims).astype(self._np), self.real)
-            self._offsets = np.r_[0, np.cumsum(counts)].astype(np.int32)
+            self._prm.from_numpy(np.concatenate(prims).astype(self._np))
+        self._prm_offsets = _field(np.r_[0, np.cumsum(counts)].astype(np.int32), ti.i32)
+        balls = [o.bounding_balls() for o in self.obstacles]
+        self._prm_bounds = ti.field(self.real, (max(1, sum(counts)), 4))
+        self._bounds = ti.field(self.real, (max(1, len(balls)), 4))
+        if self.has_primitives:
+            self._prm_bounds.from_numpy(np.concatenate([b for b, _ in balls]).astype(self._np))
+        if balls:
+            self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
+        self._moving = [o.motion is not None for o in self.obstacles]
         self._fields = {}
+        self._bodies = None
+        self.state, self._no_state = None, np.zeros((1, 6))
+        # Small problems run each loop on one thread on the CPU: dispatching a few hundred
+        # iterations to the thread pool costs more than it saves (on 2 cores, measured 2x).
+        self.serial = be.arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
 
     def _field(self, body, positions):
         """A Taichi field for numpy positions (one per body, reused)."""
@@ -363,72 +482,112 @@ class Detector:
             return f
         return positions
 
-    def detect(self, positions, alarm: float, poses=None, previous_poses=None) -> "Contacts":
+    def _setup(self, fields_):
+        sizes = [f.shape[0] for f in fields_]
+        if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
+            slots = len(self.obstacles) + (len(fields_) - 1 if self.soft_soft else 0)
+            self._bodies = [_Surface(f, s, n, max(slots, 1), self.real, self._np)
+                            for f, s, n in zip(self.faces, self.samples, sizes)]
+
+    def detect(self, positions, alarm: float, poses=None, previous_poses=None, velocities=None,
+               dt: float = 0.0) -> "Contacts":
         """Contacts of every contact point within `alarm` of an obstacle or another body.
 
         poses / previous_poses: per obstacle (R, t) now and one step earlier (default: identity);
-        the second gives the displacement of the touched material point (for friction)."""
+        the second gives the displacement of the touched material point (for friction).
+        velocities (per body a Taichi field, with `dt`): also read each body's positions x and
+        x - dt v into `self.state[b]` ((n, 6) numpy) in the same launches."""
         fields_ = [self._field(b, p) for b, p in enumerate(positions)]
-        identity = [(np.eye(3), np.zeros(3))] * len(self.obstacles)
+        self._setup(fields_)
+        no = len(self.obstacles)
+        identity = [(np.eye(3), np.zeros(3))] * no
         poses = identity if poses is None else poses
         previous_poses = poses if previous_poses is None else previous_poses
+        packed = np.array([np.r_[R.reshape(-1), t] for R, t in poses], dtype=self._np).reshape(-1, 12) if no \
+            else np.zeros((1, 12), self._np)
         parts = []
-        for b, x in enumerate(fields_):
-            if self.obstacles:
-                parts.append(self._rigid(b, x, alarm, poses, previous_poses))
-            if self.soft_soft:
-                for other in range(len(fields_)):
-                    if other != b:
-                        parts.append(self._soft(b, x, other, fields_[other], alarm))
-        return Contacts.concatenate(parts)
+        sizes = [f.shape[0] for f in fields_]
+        if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
+            self.state = [np.empty((n, 6), np.float64) for n in sizes]
+        for a, x in enumerate(fields_):
+            others = [b for b in range(len(fields_)) if b != a] if self.soft_soft else []
+            v = None if velocities is None else velocities[a]
+            out = self._run(a, x, fields_, others, alarm, packed, v, dt)
+            for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
+                if obstacle.meshes:
+                    self._mesh(a, x, o, obstacle, poses[o], out)
+            parts.append(self._contacts(a, out, others, alarm, poses, previous_poses))
+        return Contacts.join(parts)
 
-    def _rigid(self, b, x, alarm, poses, previous_poses) -> "Contacts":
-        nodes, weights = self.samples[b]
+    def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> np.ndarray:
+        body, no = self._bodies[a], len(self.obstacles)
+        out = body.out
+        if not self.has_primitives:
+            out[:, :no, 0] = 1e300
+        state = self.state[a] if v is not None else self._no_state
+        if not (self.has_primitives or others) or body.n_samples == 0:
+            if v is not None:
+                read_state(x, v, dt, state)
+            return out
+        launches = [(others[0] if others else a, self.has_primitives, bool(others))]
+        launches += [(b, False, True) for b in others[1:]]
+        for k, (b, rigid, soft) in enumerate(launches):
+            other = self._bodies[b]
+            slot = no + others.index(b) if soft else 0
+            if other.cell is None:                    # the median triangle extent, at the first call
+                tri = fields_[b].to_numpy().astype(np.float64)[other.faces_np]
+                other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
+            while True:
+                _detect(x, body.nodes, body.weights, self._prm, self._prm_offsets, self._prm_bounds, self._bounds,
+                        poses, fields_[b], other.faces, other.surface, other.vf_offsets, other.vf, other.normals,
+                        other.start, other.cursor, other.ids, other.grid_i, other.grid_f, other.cell + 2 * alarm,
+                        alarm, slot, out, x if v is None else v, dt, state, rigid, soft, v is not None and k == 0,
+                        self.serial)
+                needed = int(out[-1, slot, 0]) if soft else 0
+                if needed <= other.ids.shape[0]:
+                    break
+                other.ids = ti.field(ti.i32, 2 * needed)  # grow and redo (rare)
+        return out
+
+    def _mesh(self, a, x, o, obstacle, pose, out) -> None:
+        nodes, weights = self.samples[a]
+        R, t = pose
+        local = (np.einsum("sj,sji->si", weights, x.to_numpy()[nodes]) - t) @ R
+        g, n, c = obstacle.mesh_closest(local)
+        res = out[:-1, o]
+        better = g < res[:, 0]
+        res[better, :7] = np.column_stack([g, n @ R.T, c @ R.T + t])[better]
+        res[better, 7:10], res[better, 10] = 0.0, -1.0
+
+    def _contacts(self, a, out, others, alarm, poses, previous_poses) -> "Contacts":
+        """The buffer's hits as Contacts, ordered by (sample, kind, other) (np.nonzero's order)."""
         no = len(self.obstacles)
-        if self.has_primitives:
-            res = np.empty((len(nodes), no, 7), dtype=self._np)
-            _rigid_kernel(x, nodes, weights, self._prm, self._offsets,
-                          np.array([np.r_[R.reshape(-1), t] for R, t in poses], dtype=self._np), res)
-            res = res.astype(np.float64)
-        else:
-            res = np.full((len(nodes), no, 7), np.inf)
-        for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
-            if obstacle.meshes:
-                R, t = poses[o]
-                local = (np.einsum("sj,sji->si", weights, x.to_numpy()[nodes]) - t) @ R
-                g, n, c = obstacle.mesh_closest(local)
-                better = g < res[:, o, 0]
-                res[better, o] = np.column_stack([g, n @ R.T, c @ R.T + t])[better]
-        s, o = np.nonzero(res[:, :, 0] <= alarm)
+        nodes, weights = self.samples[a]
+        s, slot = np.nonzero(out[:-1, :, 0] <= alarm)
+        res = out[s, slot].astype(np.float64)
         k = len(s)
-        point = res[s, o, 4:7]
+        soft = slot >= no
+        other = slot.copy()
+        triangle = np.full((k, 3), -1, np.int32)
+        if soft.any():
+            ob = np.asarray(others, np.int32)[slot[soft] - no]
+            other[soft] = ob
+            face = res[soft, 10].astype(np.int64)
+            tri = np.empty((len(ob), 3), np.int32)
+            for b in np.unique(ob):
+                sel = ob == b
+                tri[sel] = self.faces[b][face[sel]]
+            triangle[soft] = tri
+        point = res[:, 4:7]
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
         motion = np.zeros((k, 3))
-        for j in np.unique(o):
-            (R1, t1), (R0, t0) = poses[j], previous_poses[j]
-            sel = o == j
-            motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
-        return Contacts(body=np.full(k, b, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
-                        own_weights=weights[s].astype(np.float64), other=o.astype(np.int32),
-                        soft=np.zeros(k, bool), triangle=np.full((k, 3), -1, np.int32), weights=np.zeros((k, 3)),
-                        normal=res[s, o, 1:4], gap=res[s, o, 0], closest=point, other_motion=motion)
-
-    def _soft(self, b, xa, other, xb, alarm) -> "Contacts":
-        pb = xb.to_numpy().astype(np.float64)
-        faces = self.faces[other]
-        origin, cell, dims, offsets, ids = triangle_grid(pb, faces, alarm)
-        nodes, weights = self.samples[b]
-        if len(nodes) == 0:
-            return Contacts.empty()
-        res, face = np.empty((len(nodes), 10), dtype=self._np), np.empty(len(nodes), dtype=np.int32)
-        _soft_kernel(xa, nodes, weights, xb, faces, vertex_normals(pb, faces).astype(self._np),
-                     np.r_[origin, cell].astype(self._np), dims.astype(np.int32), offsets.astype(np.int32),
-                     ids.astype(np.int32), alarm, res, face)
-        res = res.astype(np.float64)
-        s = np.flatnonzero(face >= 0)
-        k = len(s)
-        return Contacts(body=np.full(k, b, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
-                        own_weights=weights[s].astype(np.float64), other=np.full(k, other, np.int32),
-                        soft=np.ones(k, bool), triangle=faces[face[s]].astype(np.int32), weights=res[s, 4:7],
-                        normal=res[s, 1:4], gap=res[s, 0], closest=res[s, 7:10], other_motion=np.zeros((k, 3)))
+        for j in np.unique(slot[~soft]):
+            if self._moving[j]:
+                (R1, t1), (R0, t0) = poses[j], previous_poses[j]
+                sel = slot == j
+                motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
+        return Contacts(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
+                        own_weights=weights[s].astype(np.float64), other=other.astype(np.int32), soft=soft,
+                        triangle=triangle, weights=np.where(soft[:, None], res[:, 7:10], 0.0),
+                        normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)

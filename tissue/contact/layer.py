@@ -23,8 +23,8 @@ import numpy as np
 
 from ..errors import TissueError
 from ..options import Options, require
-from ..scene import add_stage, rotation_matrix
-from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh
+from ..scene import Drawable, add_stage, rotation_matrix
+from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh, shape_surface
 from .pipeline import ContactBody, ContactSettings, ContactStage
 
 
@@ -69,7 +69,8 @@ class Obstacle(Options):
     mesh      the closed surface file `path`, turned by `orientation` then moved by `centre`
     Motion: `keyframes` = (t, dx, dy, dz) per key, a translation interpolated linearly in time and
     held before the first key and after the last (none: the obstacle stays put).
-    friction: its own Coulomb coefficient (None: the Contact's).
+    friction: its own Coulomb coefficient (None: the Contact's). color: how the run's images draw
+    it (a plane as a patch around the bodies).
     """
 
     shape: Literal["plane", "sphere", "capsules", "box", "mesh"] = "plane"
@@ -82,6 +83,7 @@ class Obstacle(Options):
     path: str = ""
     keyframes: tuple[float, ...] = ()
     friction: float | None = None
+    color: str = ""                 # in the run's images; "" for the renderer's obstacle grey
 
     def check(self):
         require(self.radius > 0, "radius", f"must be > 0 m, got {self.radius}")
@@ -133,6 +135,7 @@ class ContactLayer:
     name = "contact"
 
     def __init__(self, sim, settings: Contact, obstacles: dict[str, Obstacle]):
+        self.specs = obstacles
         self.obstacles = {name: spec.build(name) for name, spec in obstacles.items()}
         bodies = [ContactBody(b.solver, b.faces) for b in sim.bodies.values()]
         self.stage = ContactStage(bodies, list(self.obstacles.values()), settings.settings())
@@ -146,12 +149,51 @@ class ContactLayer:
         stats = self.stage.stats
         return {k: v[-1] for k, v in stats.times.items() if v}, dict(stats.counters)
 
+    def drawables(self) -> list[Drawable]:
+        """The obstacles, for the run's images (see tissue.scene.Drawable)."""
+        out = []
+        for name, obstacle in self.obstacles.items():
+            planes = any(isinstance(s, Plane) for s in obstacle.shapes)
+            out.append(Drawable(
+                name=name, surface=lambda bounds, o=obstacle: obstacle_surface(o, bounds),
+                pose=lambda time, n=name: self.obstacle_transform(n, time), moving=obstacle.motion is not None,
+                framed=not planes, flat=planes, color=self.specs[name].color or None))
+        return out
+
     def obstacle_transform(self, name: str, time: float) -> np.ndarray:
         """4×4 pose of an obstacle at `time` (for drawing its `surface()`)."""
         R, t = self.obstacles[name].pose(time)
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t
         return T
+
+
+def obstacle_surface(obstacle: RigidObstacle, bounds) -> tuple[np.ndarray, np.ndarray]:
+    """(points, triangles) of an obstacle in its own frame for drawing: curved shapes finely
+    tessellated, a plane as a rectangle around the bodies' `bounds` seen along its normal (with a
+    margin of a quarter of their extent on each side)."""
+    b = np.asarray(bounds, dtype=np.float64).reshape(3, 2)
+    corners = np.array(np.meshgrid(*b, indexing="ij")).reshape(3, -1).T
+    points, triangles, offset = [], [], 0
+    for shape in obstacle.shapes:
+        if isinstance(shape, Plane):
+            n = np.asarray(shape.normal, dtype=np.float64)
+            n /= np.linalg.norm(n)
+            u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
+            u /= np.linalg.norm(u)
+            w = np.cross(n, u)
+            origin = np.asarray(shape.point, dtype=np.float64)
+            cu, cw = (corners - origin) @ u, (corners - origin) @ w
+            margin = 0.25 * max(np.ptp(cu), np.ptp(cw), 1e-3)
+            (u0, u1), (w0, w1) = (cu.min() - margin, cu.max() + margin), (cw.min() - margin, cw.max() + margin)
+            p = origin + np.array([[u0, w0], [u1, w0], [u1, w1], [u0, w1]]) @ np.stack([u, w])
+            t = np.array([[0, 1, 2], [0, 2, 3]])
+        else:
+            p, t = shape_surface(shape, resolution=32)
+        points.append(p)
+        triangles.append(np.asarray(t) + offset)
+        offset += len(p)
+    return np.concatenate(points), np.concatenate(triangles).astype(np.int64)
 
 
 def contact(sim) -> ContactLayer | None:

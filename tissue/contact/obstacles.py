@@ -202,6 +202,27 @@ class RigidObstacle:
             offset += len(p)
         return np.concatenate(points), np.concatenate(triangles).astype(np.int64)
 
+    def bounding_balls(self) -> tuple[np.ndarray, np.ndarray]:
+        """((P, 4) ball (centre, radius) around each primitive, (4,) a ball around all of them), in
+        the obstacle's frame; radius -1 where unbounded (a plane) or empty (no primitive)."""
+        balls = []
+        for row in self.primitives:
+            code, a = int(row[0]), row[1:4]
+            if code == SPHERE:
+                balls.append(np.r_[a, row[4]])
+            elif code == CAPSULE:
+                b = row[4:7]
+                balls.append(np.r_[0.5 * (a + b), 0.5 * np.linalg.norm(b - a) + row[7]])
+            elif code == BOX:
+                balls.append(np.r_[a, np.linalg.norm(row[4:7])])
+            else:
+                balls.append(np.r_[0.0, 0.0, 0.0, -1.0])
+        balls = np.array(balls).reshape(-1, 4)
+        if not len(balls) or np.any(balls[:, 3] < 0):
+            return balls, np.r_[0.0, 0.0, 0.0, -1.0]
+        centre = 0.5 * (balls[:, :3].min(axis=0) + balls[:, :3].max(axis=0))
+        return balls, np.r_[centre, np.max(np.linalg.norm(balls[:, :3] - centre, axis=1) + balls[:, 3])]
+
     def pose(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         if self.motion is None:
             return np.eye(3), np.zeros(3)

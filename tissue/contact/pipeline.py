@@ -8,6 +8,10 @@
                   attachments (bilateral) are eliminated first by a Schur complement
   5. correction   x = x_free + R h A₀⁻¹ (H R)ᵀ λ, v = v_free + (x - x_free) / h
 
+Kernel launches per step (warped): one detection launch per body (plus one per further body pair
+with three or more bodies), one for W and one for the correction per touched body, one for the
+Gauss-Seidel; everything between them is a few dozen numpy operations on arrays of contacts.
+
 λ are impulses (N·s) and δ = δ_free + W λ are positions (see compliance.py); the reaction force
 of a contact is λ / h. The frictional contact problem is solved on W / w̄ with w̄ the mean of its
 diagonal (reactions w̄ λ in metres), so `tolerance` is in metres: the natural-map residual of the
@@ -76,7 +80,8 @@ class ContactResult:
 
     contacts: Contacts
     rows: ConstraintRows | None = None
-    W: np.ndarray | None = None       # (n_rows, n_rows) Delassus operator (metres per N·s)
+    W: np.ndarray | None = None       # (n_rows, n_rows) Delassus operator (metres per N·s); a view of a
+                                      # buffer the step after next overwrites (copy it to keep it)
     impulses: np.ndarray = field(default_factory=lambda: np.zeros(0))  # λ (n_rows,), N·s
     info: ContactInfo | None = None
     dt: float = 1.0
@@ -136,6 +141,13 @@ class ContactStage:
             mask = np.zeros(b.solver.fem.n_nodes, bool)
             mask[b.solver.fixed_nodes] = True
             self._fixed.append(mask)
+        # Per-body node arrays side by side (body b's nodes from _offset[b]), for vectorised lookups.
+        self._offset = np.r_[0, np.cumsum([len(f) for f in self._fixed])]
+        self._fixed_all = np.concatenate(self._fixed)
+        self._any_fixed = bool(self._fixed_all.any())
+        self._pose_cache = {}
+        self._buffers, self._flip = [np.empty(0), np.empty(0)], 0
+        self._scaled = np.empty(0)
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
         self.compliance = [kind(b.solver) for b in self.bodies]
         self.time = 0.0
@@ -156,30 +168,51 @@ class ContactStage:
                                     self.settings.contact_distance if distance is None else distance, poses, poses)
 
     def _friction(self, contacts: Contacts) -> np.ndarray:
+        """μ per contact: soft–soft the smaller of the two bodies' (the default unless both say);
+        soft–rigid the obstacle's, else the body's, else the default."""
         default = self.settings.friction
-        body_mu = [b.friction for b in self.bodies]
-        mu = np.empty(len(contacts))
-        for i, (b, o, soft) in enumerate(zip(contacts.body, contacts.other, contacts.soft)):
-            if soft:
-                pair = [m for m in (body_mu[b], body_mu[o]) if m is not None]
-                mu[i] = min(pair) if len(pair) == 2 else default
-            else:
-                mine = self.obstacles[o].friction
-                mu[i] = mine if mine is not None else (body_mu[b] if body_mu[b] is not None else default)
-        return mu
+        body_mu = np.array([np.nan if b.friction is None else b.friction for b in self.bodies])
+        obstacle_mu = np.array([np.nan if o.friction is None else o.friction for o in self.obstacles] or [np.nan])
+        own = body_mu[contacts.body]
+        other = np.where(contacts.soft, body_mu[np.where(contacts.soft, contacts.other, 0)],
+                         obstacle_mu[np.where(contacts.soft, 0, contacts.other)])
+        soft = np.where(np.isnan(own) | np.isnan(other), default, np.fmin(own, other))
+        rigid = np.where(np.isnan(other), np.where(np.isnan(own), default, own), other)
+        return np.where(contacts.soft, soft, rigid)
 
     def _drop_fixed(self, contacts: Contacts) -> Contacts:
         """Contacts that cannot move (a point on fixed nodes against a rigid or fixed triangle)
         carry no row."""
-        if not any(f.any() for f in self._fixed) or not len(contacts):
+        if not self._any_fixed or not len(contacts):
             return contacts
-        stuck = np.zeros(len(contacts), bool)
-        for b, fixed in enumerate(self._fixed):
-            sel = np.flatnonzero(contacts.body == b)
-            stuck[sel] = (fixed[contacts.nodes[sel]] | (contacts.own_weights[sel] == 0)).all(axis=1)
-        for i in np.flatnonzero(stuck & contacts.soft):
-            stuck[i] = self._fixed[contacts.other[i]][contacts.triangle[i]].all()
-        return contacts.take(~stuck)
+        fixed = self._fixed_all
+        stuck = (fixed[self._offset[contacts.body][:, None] + contacts.nodes] | (contacts.own_weights == 0)).all(axis=1)
+        soft = stuck & contacts.soft
+        if soft.any():
+            tri = self._offset[contacts.other[soft]][:, None] + contacts.triangle[soft]
+            stuck[soft] = fixed[tri].all(axis=1)
+        return contacts if not stuck.any() else contacts.take(~stuck)
+
+    def _poses(self, time: float):
+        """Obstacle poses at `time` (the last two are kept: a step needs its start and end)."""
+        key = round(time * 1e9)                        # ns: the end of one step is the start of the next
+        cached = self._pose_cache.get(key)
+        if cached is None:
+            cached = self._pose_cache[key] = self.poses(time)
+            if len(self._pose_cache) > 2:
+                del self._pose_cache[min(self._pose_cache)]     # the earliest time
+        return cached
+
+    def _delassus_buffer(self, n: int, dtype) -> np.ndarray:
+        """A zeroed (n, n) array in a buffer kept between steps (no page faults per step); the
+        previous step's W stays valid until the step after."""
+        self._flip = 1 - self._flip
+        buf = self._buffers[self._flip]
+        if buf.size < n * n or buf.dtype != dtype:
+            buf = self._buffers[self._flip] = np.empty(max(n * n, 2 * buf.size), dtype)
+        W = buf[:n * n].reshape(n, n)
+        W.fill(0.0)
+        return W
 
     # ---- the step -----------------------------------------------------------------------------
 
@@ -190,8 +223,8 @@ class ContactStage:
         self.time = self.time + h if time is None else float(time)
         with stats.stage("detection"):
             contacts = self._drop_fixed(self.detector.detect(
-                [b.solver.x for b in self.bodies], s.contact_distance, self.poses(self.time),
-                self.poses(self.time - h)))
+                [b.solver.x for b in self.bodies], s.contact_distance, self._poses(self.time),
+                self._poses(self.time - h), velocities=[b.solver.v for b in self.bodies], dt=h))
         if not len(contacts) and not self.attachments:
             self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
             self.last = ContactResult(contacts, dt=h)
@@ -201,25 +234,25 @@ class ContactStage:
             return self.last
 
         with stats.stage("constraints"):
-            free = [b.solver.positions() for b in self.bodies]
-            prev = [x - h * b.solver.velocities() for x, b in zip(free, self.bodies)]
+            free = [x[:, :3] for x in self.detector.state]     # read by the detection's launches
+            prev = [x[:, 3:] for x in self.detector.state]
             mu = self._friction(contacts)
             rows = build_rows(contacts, free, prev, self.attachments, self.time, frictionless=mu == 0)
-            touched = [b for b in range(len(self.bodies)) if np.any(rows.body == b)]
+            touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.bodies))).tolist()
             if s.compliance == "warped":
                 jds = {b: JaggedDiagonal(rows, b) for b in touched}
 
         with stats.stage("compliance"):
             if s.compliance == "warped":
-                W = np.zeros((rows.n_rows, rows.n_rows), dtype=self._np)
+                W = self._delassus_buffer(rows.n_rows, self._np)
                 for b in touched:
                     c = self.compliance[b]
-                    c.update_rotations()
                     c.prepare(jds[b])
                     c.add_to(W)
-                W = W.astype(np.float64)
+                if W.dtype != np.float64:
+                    W = W.astype(np.float64)
             else:
-                W = np.zeros((rows.n_rows, rows.n_rows))
+                W = self._delassus_buffer(rows.n_rows, np.float64)
                 for b in touched:
                     c = self.compliance[b]
                     c.factorise()
@@ -237,10 +270,10 @@ class ContactStage:
         self._warm_keys = contacts.keys()
         self._warm_impulses = np.einsum("ki,kij->kj", lam[:3 * nc].reshape(-1, 3), rows.frames)
         self.last = ContactResult(contacts, rows, W, lam, info, h)
-        delta = rows.q + W @ lam
+        normal = rows.q[:3 * nc:3] + W[:3 * nc:3] @ lam       # δ_n after the correction
         stats.count(contacts=nc, rows=rows.n_rows, gs_iterations=info.iterations if info else 0,
                     gs_residual=info.residual if info else 0.0,
-                    penetration=float(max(0.0, -delta[:3 * nc:3].min())) if nc else 0.0)
+                    penetration=float(max(0.0, -normal.min())) if nc else 0.0)
         return self.last
 
     def _solve(self, W: np.ndarray, rows: ConstraintRows, contacts: Contacts, mu: np.ndarray):
@@ -249,19 +282,27 @@ class ContactStage:
         m = 3 * rows.n_contacts
         q = rows.q
         lam = np.zeros(rows.n_rows)
-        Wc, qc = W[:m, :m].copy(), q[:m]
+        Wc, qc = W[:m, :m], q[:m]
         if rows.n_rows > m:                 # bilateral rows: δ_b = 0 ⇒ λ_b = -W_bb⁻¹ (q_b + W_bc λ_c)
             bb = scipy.linalg.cho_factor(W[m:, m:])
             Wc = Wc - W[:m, m:] @ scipy.linalg.cho_solve(bb, W[m:, :m])
             qc = qc - W[:m, m:] @ scipy.linalg.cho_solve(bb, q[m:])
         info = None
         if m:
+            # The problem on W / w̄ (w̄ the mean of its diagonal), in a buffer kept between steps.
+            if self._scaled.size < m * m:
+                self._scaled = np.empty(max(m * m, 2 * self._scaled.size))
+            scaled = self._scaled[:m * m].reshape(m, m)
             # Frictionless contacts have empty tangent rows; any positive diagonal there keeps the
             # solver's 3×3 blocks definite (with μ = 0 it never uses them: r_t = 0).
             t = 3 * np.flatnonzero(mu == 0)
+            diagonal = np.diagonal(Wc).copy()
             for j in (1, 2):
-                Wc[t + j, t + j] = Wc[t, t]
-            scale = float(np.mean(np.diag(Wc)))
+                diagonal[t + j] = diagonal[t]
+            scale = float(np.mean(diagonal))
+            np.multiply(Wc, 1.0 / scale, out=scaled)
+            for j in (1, 2):
+                scaled[t + j, t + j] = scaled[t, t]
             warm = np.zeros((rows.n_contacts, 3))
             if len(self._warm_keys):
                 keys = contacts.keys()
@@ -269,8 +310,12 @@ class ContactStage:
                 pos = np.minimum(pos, len(self._warm_keys) - 1)
                 hit = self._warm_keys[pos] == keys
                 warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
-            solver = FrictionalContactSolver(Wc / scale, mu, s.method)
+            solver = FrictionalContactSolver(scaled, mu, s.method, check=False)
             r, info = solver.solve(qc, s.tolerance, s.max_iterations, r0=scale * warm.ravel())
+            if not np.all(np.isfinite(r)):      # (W is not checked on the way in: it is ours)
+                raise TissueError(f"contact: the frictional contact problem gave non-finite reactions "
+                                  f"({rows.n_contacts} contacts; W finite: {bool(np.all(np.isfinite(Wc)))}); "
+                                  "the bodies' state may have diverged (reduce dt)")
             lam[:m] = r / scale
         if rows.n_rows > m:
             lam[m:] = -scipy.linalg.cho_solve(bb, q[m:] + W[m:, :m] @ lam[:m])

@@ -168,17 +168,19 @@ class Renderer:
         item.mesh.Modified()
 
     def add_obstacle(self, name: str, surface, *, color=None, opacity: float = 1.0,
-                     edges: bool = False, smooth: bool = True, framed: bool = True) -> None:
+                     edges: bool = False, smooth: bool = True, framed: bool = True, lit: bool = True) -> None:
         """A rigid obstacle: a pyvista surface (Plane, Sphere, Capsule, a read mesh ...) or a
-        (points, faces) pair. framed=False leaves it out of the camera framing (large floors)."""
+        (points, faces) pair. framed=False leaves it out of the camera framing (large floors).
+        lit=False draws it in one flat tone, like the ground (a large plane seen at a grazing
+        angle would otherwise turn into a dark slab)."""
         if name in self._obstacles:
             raise TissueError(f"render: an obstacle named {name!r} is already in the scene")
         mesh = _surface(surface, f"obstacle {name!r}")
         # Sharp edges stay sharp (a box, a blade); curved faces are smooth.
+        shading = dict(specular=0.4, specular_power=30, diffuse=0.85, ambient=0.12) if lit else dict(lighting=False)
         actor = self.plotter.add_mesh(
             mesh, name=f"obstacle:{name}", color=color or OBSTACLE_COLOR, opacity=opacity,
-            smooth_shading=smooth, split_sharp_edges=smooth, show_edges=edges, edge_color=EDGE_COLOR,
-            specular=0.4, specular_power=30, diffuse=0.85, ambient=0.12)
+            smooth_shading=smooth, split_sharp_edges=smooth, show_edges=edges, edge_color=EDGE_COLOR, **shading)
         self._obstacles[name] = _Item(mesh, actor, framed=framed)
 
     def update_obstacle(self, name: str, points=None, transform=None) -> None:
