@@ -156,11 +156,7 @@ class Renderer:
         """New points (same count) and/or scalars for a body; the camera does not move."""
         item = self._item(self._bodies, name, "body")
         if points is not None:
-            points = np.asarray(points, dtype=np.float64)
-            if points.shape != (item.mesh.n_points, 3):
-                raise TissueError(f"render: body {name!r}: expected points of shape "
-                                  f"{(item.mesh.n_points, 3)}, got {points.shape}")
-            item.mesh.points = points
+            item.mesh.points = _same_shape(points, item.mesh, f"body {name!r}")
         if scalars is not None:
             if item.scalar_name is None:
                 raise TissueError(f"render: body {name!r} was added without scalars")
@@ -187,11 +183,7 @@ class Renderer:
         """Move an obstacle: new points (same topology) or a 4x4 rigid transform of its original pose."""
         item = self._item(self._obstacles, name, "obstacle")
         if points is not None:
-            points = np.asarray(points, dtype=np.float64)
-            if points.shape != (item.mesh.n_points, 3):
-                raise TissueError(f"render: obstacle {name!r}: expected points of shape "
-                                  f"{(item.mesh.n_points, 3)}, got {points.shape}")
-            item.mesh.points = points
+            item.mesh.points = _same_shape(points, item.mesh, f"obstacle {name!r}")
             item.mesh.Modified()
         if transform is not None:
             item.actor.user_matrix = np.asarray(transform, dtype=float)
@@ -382,3 +374,11 @@ class Animation:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _same_shape(points, mesh, what: str) -> np.ndarray:
+    """New points for a drawn mesh, refused unless there is one per existing point."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape != (mesh.n_points, 3):
+        raise TissueError(f"render: {what}: expected points of shape {(mesh.n_points, 3)}, got {points.shape}")
+    return points
