@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import TissueError
 from ..options import Options, require
 from ..scene import Drawable, add_stage, rotation_matrix
-from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh, shape_surface
+from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh, plane_axes, shape_surface
 from .pipeline import ContactBody, ContactSettings, ContactStage
 
 
@@ -177,11 +177,7 @@ def obstacle_surface(obstacle: RigidObstacle, bounds) -> tuple[np.ndarray, np.nd
     points, triangles, offset = [], [], 0
     for shape in obstacle.shapes:
         if isinstance(shape, Plane):
-            n = np.asarray(shape.normal, dtype=np.float64)
-            n /= np.linalg.norm(n)
-            u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
-            u /= np.linalg.norm(u)
-            w = np.cross(n, u)
+            u, w = plane_axes(shape)
             origin = np.asarray(shape.point, dtype=np.float64)
             cu, cw = (corners - origin) @ u, (corners - origin) @ w
             margin = 0.25 * max(np.ptp(cu), np.ptp(cw), 1e-3)

@@ -102,6 +102,15 @@ class TriangleMesh:
 PRIMITIVES = (Plane, Sphere, Capsule, Box)
 
 
+def plane_axes(plane: Plane) -> tuple[np.ndarray, np.ndarray]:
+    """Two orthonormal vectors spanning the plane (with its unit normal, a right-handed frame)."""
+    n = np.asarray(plane.normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
 def _sphere_patch(rings: int, segments: int):
     """Unit-sphere points and triangles (poles at ±z) by latitude rings."""
     theta = np.linspace(0, np.pi, rings + 1)
@@ -127,11 +136,7 @@ def shape_surface(shape, size: float = 0.3, resolution: int = 16):
         tri = np.array([[q[0], q[1], q[2]] for q in quads] + [[q[0], q[2], q[3]] for q in quads])
         return (corners * shape.half) @ R.T + shape.centre, tri
     if isinstance(shape, Plane):
-        n = np.asarray(shape.normal, dtype=np.float64)
-        n /= np.linalg.norm(n)
-        u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
-        u /= np.linalg.norm(u)
-        w = np.cross(n, u)
+        u, w = plane_axes(shape)
         c = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * size / 2
         return np.asarray(shape.point, dtype=np.float64) + c[:, :1] * u + c[:, 1:] * w, np.array([[0, 1, 2], [0, 2, 3]])
     pts, tri = _sphere_patch(resolution // 2, resolution)
