@@ -52,7 +52,7 @@ def meshes(quick: bool):
 
 
 def make_solver(mesh, fixed, gravity, rotation="large", accumulation="gather", execution="auto",
-                operator="assembled", iterations=25, preconditioner="none", tolerance=1e-9):
+                operator="assembled", iterations=25, preconditioner="none", tolerance=1e-9, split_stages=False):
     from tissue.fem import CorotationalFEM, Material
     from tissue.solver import CGSettings, ImplicitEuler
 
@@ -61,7 +61,7 @@ def make_solver(mesh, fixed, gravity, rotation="large", accumulation="gather", e
     return ImplicitEuler(fem, dt=0.02, gravity=gravity, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
                          cg=CGSettings(max_iterations=iterations, tolerance=tolerance,
                                        preconditioner=preconditioner),
-                         fixed=fixed, execution=execution, operator=operator)
+                         fixed=fixed, execution=execution, operator=operator, split_stages=split_stages)
 
 
 def steps_for(n_tets: int) -> int:
@@ -113,6 +113,10 @@ def size_sweep(quick: bool) -> list[dict]:
         for execution, operator in variants:
             solver = make_solver(mesh, fixed, gravity, execution=execution, operator=operator)
             t = time_steps(solver.step, steps_for(mesh.n_tets))
+            if execution == "serial":  # one launch per step: time its two parts in a run of their own
+                solver = make_solver(mesh, fixed, gravity, execution=execution, operator=operator,
+                                     split_stages=True)
+                time_steps(solver.step, steps_for(mesh.n_tets))
             stages = solver.stats.ms_per_step(skip=3)
             row = {"mesh": label, "nodes": mesh.n_points, "tets": mesh.n_tets, "execution": execution,
                    "operator": operator, **t, "stages_ms": stages,

@@ -315,6 +315,21 @@ def test_gather_solver_is_bit_identical_run_to_run(solver, execution):
     assert np.array_equal(runs[0], runs[1])
 
 
+def test_serial_step_split_in_two_launches_is_bit_identical(solver):
+    """Reference: the serial step run as one launch (the default) against its two parts launched
+    apart (split_stages, for stage timing): 10 steps, bit-identical positions."""
+    x0, v0 = standard_state(3)
+    sim = solver("large", "gather", "serial")
+    runs = []
+    for split in (False, True):
+        sim.split_stages = split
+        sim.set_state(x0, v0)
+        runs.append(sim.run(10))
+    sim.split_stages = False
+    assert set(sim.stats.times) == {"step", "rotations+forces", "cg"}
+    assert np.array_equal(runs[0], runs[1])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("operator", ["assembled", "matrix_free"])
 def test_fresh_parallel_solvers_are_bit_identical(backend, operator):

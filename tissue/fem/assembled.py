@@ -3,9 +3,10 @@
 Beyond the paper's matrix-free product: a CG iteration then costs one row-parallel block
 product (about 15 blocks per node) instead of re-deriving every element's stress from strain
 (about 5.5 elements per node, each ~140 multiply-adds plus a scatter and a gather), which is
-roughly 3× less arithmetic and traffic per iteration for one assembly per step. Rows are
-assembled by the node that owns them, reading its incident elements through the vertex index,
-so there are no write conflicts and the order is fixed (deterministic).
+roughly 3× less arithmetic and traffic per iteration for one assembly per step. Each element's
+rotated shape gradients are computed once per step; rows are then assembled by the node that
+owns them, reading its incident elements through the vertex index, so there are no write
+conflicts and the order is fixed (deterministic).
 
     R Kₐᵦ Rᵀ = V (λ ĝₐ ĝᵦᵀ + μ ĝᵦ ĝₐᵀ + μ (gₐ·gᵦ) I),   ĝ = R g,  g = ∇N (rest shape)
 """
@@ -42,6 +43,12 @@ class AssembledStiffness:
         offsets, columns, slots, diagonal = block_pattern(
             fem.mesh.tets, n, fem.incidence.to_numpy())
         real = fem.R.dtype
+        # Rest shape gradients ∇N of the 4 corners (columns), and their rotations R ∇N, per element.
+        inv = fem.Dm_inv.to_numpy().astype(np.float64)
+        grads = np.concatenate([-inv.sum(axis=1)[:, :, None], inv.transpose(0, 2, 1)], axis=2)
+        self.gradients = ti.Matrix.field(3, 4, real, fem.n_elements)
+        self.rotated = ti.Matrix.field(3, 4, real, fem.n_elements)
+        self.gradients.from_numpy(grads)
         self.n_blocks = len(columns)
         self.row_offsets = int_field(n + 1)
         self.columns = int_field(self.n_blocks)
@@ -54,6 +61,12 @@ class AssembledStiffness:
         self.diagonal_slot.from_numpy(diagonal)
 
     @ti.func
+    def rotate_gradients(self):
+        """R ∇N of every element, with the rotations of the latest `fem.update_rotations`."""
+        for e in range(self.fem.n_elements):
+            self.rotated[e] = self.fem.R[e] @ self.gradients[e]
+
+    @ti.func
     def assemble_row(self, v):
         fem = self.fem
         for j in range(self.row_offsets[v], self.row_offsets[v + 1]):
@@ -61,23 +74,17 @@ class AssembledStiffness:
         for k in range(fem.incidence_offsets[v], fem.incidence_offsets[v + 1]):
             c = fem.incidence[k]
             e, a = c // 4, c % 4
-            Dt = fem.Dm_inv[e].transpose()   # columns: gradients of nodes 1..3
-            g1 = ti.Vector([Dt[0, 0], Dt[1, 0], Dt[2, 0]])
-            g2 = ti.Vector([Dt[0, 1], Dt[1, 1], Dt[2, 1]])
-            g3 = ti.Vector([Dt[0, 2], Dt[1, 2], Dt[2, 2]])
-            grads = ti.Matrix.cols([-(g1 + g2 + g3), g1, g2, g3])
-            R = fem.R[e]
-            rotated = R @ grads
-            lam, mu = fem.lame[e][0], fem.lame[e][1]
+            grads, rotated = self.gradients[e], self.rotated[e]
             V = fem.volume[e]
+            lam, mu = V * fem.lame[e][0], V * fem.lame[e][1]
             ga = ti.Vector([grads[0, a], grads[1, a], grads[2, a]])
             ha = ti.Vector([rotated[0, a], rotated[1, a], rotated[2, a]])
             for b in ti.static(range(4)):
                 gb = ti.Vector([grads[0, b], grads[1, b], grads[2, b]])
                 hb = ti.Vector([rotated[0, b], rotated[1, b], rotated[2, b]])
                 j = self.slots[k][b]  # a slot of row v: owned by this thread, so no atomic add
-                self.blocks[j] = self.blocks[j] + V * (lam * ha.outer_product(hb) + mu * hb.outer_product(ha)
-                                                       + mu * ga.dot(gb) * ti.Matrix.identity(float, 3))
+                self.blocks[j] = self.blocks[j] + (lam * ha).outer_product(hb) + (mu * hb).outer_product(ha) \
+                    + mu * ga.dot(gb) * ti.Matrix.identity(float, 3)
 
     @ti.func
     def product_row(self, v, p):

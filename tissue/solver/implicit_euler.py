@@ -7,8 +7,8 @@ the matrix is A = (1 + h α_M) M + (h α_K + h²) Σ R Kₑ Rᵀ. It is never as
 A p, computed element by element (tissue.fem.corotational).
 
 Launches are what cost on small meshes (tens of µs each from Python), so a whole step runs in very
-few kernels: "serial" runs the CG loop inside one single-threaded kernel (best for the paper's
-real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each iteration six
+few kernels: "serial" runs the whole step, CG loop included, in one single-threaded kernel (best
+for the paper's real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each iteration six
 parallel loops that exit early once converged. Dot products are blocked partial sums added in a
 fixed order, so results are bit-identical run to run.
 """
@@ -65,7 +65,7 @@ class ImplicitEuler:
     def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
                  cg: CGSettings = CGSettings(), fixed=None, execution: str = "auto",
-                 operator: str = "assembled", unroll: int = 5):
+                 operator: str = "assembled", unroll: int = 5, split_stages: bool = False):
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise TissueError(f"dt: the time step must be a finite number > 0 s, got {dt!r}")
         for name, value in (("rayleigh_mass", rayleigh_mass), ("rayleigh_stiffness", rayleigh_stiffness)):
@@ -86,6 +86,9 @@ class ImplicitEuler:
             execution = "serial" if (be.arch == "cpu" and fem.n_elements < SERIAL_BELOW) else "parallel"
         self.fem, self.dt, self.cg = fem, float(dt), cg
         self.execution, self.unroll, self.operator = execution, unroll, operator
+        # The serial path runs a step in one launch; split_stages times its two parts apart
+        # (one more launch, ~20-40 µs on a 600-element mesh) for the benchmarks' stage tables.
+        self.split_stages = split_stages
         # "assembled": Σ R Kₑ Rᵀ in block rows once per step; "matrix_free": element by element
         # in every CG iteration, as the paper does.
         self.matrix = AssembledStiffness(fem) if operator == "assembled" else None
@@ -151,18 +154,22 @@ class ImplicitEuler:
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
-        with self.stats.stage("rotations+forces"):
-            if self.execution == "serial":
-                self._begin_serial()
-            else:
-                self._begin_parallel()
-        with self.stats.stage("cg"):
-            if self.execution == "serial":
-                report = self._solve_serial()
-            else:
-                for _ in range(-(-self.cg.max_iterations // self.unroll)):
-                    self._iterate_parallel()
-                report = self._end_parallel()
+        if self.execution == "serial" and not self.split_stages:
+            with self.stats.stage("step"):
+                report = self._serial("step")
+        else:
+            with self.stats.stage("rotations+forces"):
+                if self.execution == "serial":
+                    self._serial("begin")
+                else:
+                    self._begin_parallel()
+            with self.stats.stage("cg"):
+                if self.execution == "serial":
+                    report = self._serial("solve")
+                else:
+                    for _ in range(-(-self.cg.max_iterations // self.unroll)):
+                        self._iterate_parallel()
+                    report = self._end_parallel()
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),
@@ -230,6 +237,7 @@ class ImplicitEuler:
         g = ti.Vector(self.gravity)
         fem.update_rotations(self.x)
         if ti.static(self.operator == "assembled"):
+            self.matrix.rotate_gradients()
             for v in range(fem.n_nodes):
                 self.matrix.assemble_row(v)
         fem.scatter("force", self.x)
@@ -361,16 +369,14 @@ class ImplicitEuler:
         return self._report()
 
     @ti.kernel
-    def _begin_serial(self):
+    def _serial(self, part: ti.template()) -> ti.types.vector(6, float):
+        """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
         ti.loop_config(serialize=True)
         for _ in range(1):
-            self._begin()
-
-    @ti.kernel
-    def _solve_serial(self) -> ti.types.vector(6, float):
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            while self.scalars[DONE] == 0:
-                self._iteration()
-            self._end()
+            if ti.static(part != "solve"):
+                self._begin()
+            if ti.static(part != "begin"):
+                while self.scalars[DONE] == 0:
+                    self._iteration()
+                self._end()
         return self._report()
