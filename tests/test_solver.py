@@ -109,6 +109,26 @@ def test_step_matches_direct_solve(solver, config):
     check_against_direct_solve(solver, config)
 
 
+def test_step_with_external_forces_matches_direct_solve(solver):
+    """Reference: the direct solve of test_step_matches_direct_solve with random nodal forces
+    added to the right-hand side (scipy, reference.linearise(external=...)). Same tolerance."""
+    x0, v0 = standard_state(1)
+    forces = np.random.default_rng(7).standard_normal(x0.shape) * 1e3
+    sim = solver("polar", "gather", "serial", "assembled", "none")
+    sim.set_state(x0, v0)
+    sim.set_external_forces(forces)
+    sim.step()
+    sim.set_external_forces(None)
+    x_ref, v_ref = ref.reference_step(BEAM, MATERIAL, x0, v0, fixed=FIXED, rotation="polar", external=forces, **STEP)
+    assert rel(sim.velocities(), v_ref) <= 1e-8
+    assert rel(sim.positions() - x0, x_ref - x0) <= 1e-8
+    with pytest.raises(TissueError, match="external forces: expected shape"):
+        sim.set_external_forces(forces[:-1])
+    forces[3, 1] = np.nan
+    with pytest.raises(TissueError, match=r"non-finite values at nodes \[3\]"):
+        sim.set_external_forces(forces)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("config", SLOW_CONFIGS, ids="-".join)
 def test_step_matches_direct_solve_full_grid(solver, config):

@@ -105,6 +105,7 @@ class ImplicitEuler:
         self.z = ti.Vector.field(3, real, n)
         self.p = ti.Vector.field(3, real, n)
         self.q = ti.Vector.field(3, real, n)
+        self.external = ti.Vector.field(3, real, n)   # applied nodal forces (N), zero unless set
         self.fixed = int_field(n)
         self.scalars = ti.field(real, 12)
         self.block = 1024 if be.arch == "cpu" else 32
@@ -126,6 +127,20 @@ class ImplicitEuler:
         mask[nodes] = 1
         self.fixed.from_numpy(mask)
         self.fixed_nodes = np.flatnonzero(mask)
+
+    def set_external_forces(self, forces=None) -> None:
+        """Nodal forces (n, 3) in newtons applied from the next step on (tip loads, an
+        instrument's push); None removes them. Forces at fixed nodes have no effect."""
+        if forces is None:
+            self.external.fill(0.0)
+            return
+        forces = np.asarray(forces, dtype=np.float64)
+        if forces.shape != (self.fem.n_nodes, 3):
+            raise TissueError(f"external forces: expected shape ({self.fem.n_nodes}, 3), got {forces.shape}")
+        if not np.isfinite(forces).all():
+            bad = np.flatnonzero(~np.isfinite(forces).all(axis=1))
+            raise TissueError(f"external forces: non-finite values at nodes {bad[:10].tolist()}")
+        self.external.from_numpy(forces.astype(np.float64 if self.x.dtype == ti.f64 else np.float32))
 
     def positions(self) -> np.ndarray:
         return self.x.to_numpy().astype(np.float64)
@@ -243,7 +258,7 @@ class ImplicitEuler:
         fem.scatter("force", self.x)
         for v in range(fem.n_nodes):  # the forces f(x, v), kept in r until the right-hand side is complete
             m = fem.mass[v]
-            self.r[v] = fem.gathered(v) + m * g - self.rayleigh_mass * m * self.v[v]
+            self.r[v] = fem.gathered(v) + m * g + self.external[v] - self.rayleigh_mass * m * self.v[v]
         if ti.static(self.operator == "matrix_free"):
             fem.scatter("stiffness", self.v)
         for b in range(self.n_blocks):

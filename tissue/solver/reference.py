@@ -98,7 +98,7 @@ class LinearisedStep:
 
 def linearise(mesh: TetMesh, material: Material, x: np.ndarray, v: np.ndarray, dt: float,
               gravity=(0.0, 0.0, -9.81), rayleigh_mass=0.0, rayleigh_stiffness=0.0,
-              rotation: str = "large") -> LinearisedStep:
+              rotation: str = "large", external=None) -> LinearisedStep:
     Ke = sp.block_diag(list(element_stiffness(mesh, material)), format="csr")
     R = _block_diagonal_rotation(element_rotations(mesh, x, rotation))
     G = _scatter_matrix(mesh)
@@ -112,6 +112,8 @@ def linearise(mesh: TetMesh, material: Material, x: np.ndarray, v: np.ndarray, d
     h = dt
     f = forces + mass3 * np.tile(gravity, mesh.n_points) - rayleigh_mass * mass3 * v.reshape(-1) \
         - rayleigh_stiffness * (K @ v.reshape(-1))
+    if external is not None:
+        f = f + np.asarray(external, dtype=np.float64).reshape(-1)
     A = (sp.diags((1 + h * rayleigh_mass) * mass3) + (h * rayleigh_stiffness + h * h) * K).tocsr()
     b = h * f - h * h * (K @ v.reshape(-1))
     return LinearisedStep(A=A, b=b, stiffness=K, forces=forces, mass=mass3)
