@@ -98,9 +98,8 @@ def cg_bytes_per_iteration(solver) -> int:
     """Bytes a CG iteration must move at least (assembled operator): the blocks, their column
     indices and row offsets, and the nodal vectors read and written (p, q, dv, r, z, mass, fixed)."""
     n = solver.fem.n_nodes
-    blocks = solver.matrix.n_blocks
     real = 8 if solver.fem.R.dtype.to_string() == "f64" else 4
-    return blocks * (9 * real + 4) + 4 * (n + 1) + n * (3 * real * 9 + real + 4)
+    return solver.matrix.nbytes + n * (3 * real * 9 + real + 4)
 
 
 def size_sweep(quick: bool) -> list[dict]:

@@ -275,9 +275,7 @@ class ExactCompliance:
         s, fem = self.solver, self.solver.fem
         matrix = getattr(s, "matrix", None)
         if matrix is not None and self.assembly == "solver":
-            n3 = 3 * fem.n_nodes
-            K = sp.bsr_matrix((matrix.blocks.to_numpy().astype(np.float64), matrix.columns.to_numpy(),
-                               matrix.row_offsets.to_numpy()), shape=(n3, n3)).tocsr()
+            K = matrix.to_scipy()
             mass = np.repeat(fem.mass.to_numpy().astype(np.float64), 3)
             A = sp.diags(s.mass_factor * mass) + s.stiffness_factor * K
         else:

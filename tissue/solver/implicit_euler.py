@@ -1,15 +1,16 @@
-"""Implicit backward Euler with one linearisation per step, solved by matrix-free filtered CG.
+"""Implicit backward Euler with one linearisation per step, solved by filtered CG.
 
     (M - h B - h² K) dv = h f(x, v) + h² K v,   v⁺ = v + dv,   x⁺ = x + h v⁺      (NOTES eq. 4)
 
 with K = -Σ R Kₑ Rᵀ (the co-rotational tangent) and Rayleigh damping B = -(α_M M + α_K (-K)), so
-the matrix is A = (1 + h α_M) M + (h α_K + h²) Σ R Kₑ Rᵀ. It is never assembled: CG needs only
-A p, computed element by element (tissue.fem.corotational).
+the matrix is A = (1 + h α_M) M + (h α_K + h²) Σ R Kₑ Rᵀ. CG needs only products A p: from the
+co-rotated blocks assembled once per step ("assembled", tissue.fem.assembled), or element by
+element in every iteration as the paper does ("matrix_free", tissue.fem.corotational).
 
 Launches are what cost on small meshes (tens of µs each from Python), so a whole step runs in very
 few kernels: "serial" runs the whole step, CG loop included, in one single-threaded kernel (best
-for the paper's real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each iteration six
-parallel loops that exit early once converged. Dot products are blocked partial sums added in a
+for the paper's real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each
+iteration five parallel loops that exit early once converged. Dot products are blocked partial sums added in a
 fixed order, so results are bit-identical run to run.
 """
 
@@ -23,7 +24,7 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from ..fem import CorotationalFEM
-from ..fem.assembled import AssembledStiffness
+from ..fem.assembled import BlockRows, SymmetricBlocks
 from ..fem.corotational import int_field
 from ..stats import Stats
 
@@ -89,9 +90,12 @@ class ImplicitEuler:
         # The serial path runs a step in one launch; split_stages times its two parts apart
         # (one more launch, ~20-40 µs on a 600-element mesh) for the benchmarks' stage tables.
         self.split_stages = split_stages
-        # "assembled": Σ R Kₑ Rᵀ in block rows once per step; "matrix_free": element by element
-        # in every CG iteration, as the paper does.
-        self.matrix = AssembledStiffness(fem) if operator == "assembled" else None
+        # "assembled": Σ R Kₑ Rᵀ in 3×3 blocks once per step (the upper triangle when one thread
+        # does it all, full rows otherwise); "matrix_free": element by element in every CG
+        # iteration, as the paper does.
+        self.matrix = None
+        if operator == "assembled":
+            self.matrix = (SymmetricBlocks if execution == "serial" else BlockRows)(fem)
         self.gravity = tuple(float(g) for g in gravity)
         self.rayleigh_mass, self.rayleigh_stiffness = float(rayleigh_mass), float(rayleigh_stiffness)
         self.stats = Stats()
@@ -226,8 +230,16 @@ class ImplicitEuler:
         return z
 
     @ti.func
+    def _multiply(self, src: ti.template()):
+        """The pass that a product needs before `_stiffness_times(v, src)` can read node v."""
+        if ti.static(self.operator == "assembled"):
+            self.matrix.multiply(src)
+        else:
+            self.fem.scatter("stiffness", src)
+
+    @ti.func
     def _stiffness_times(self, v, src):
-        """(Σ R Kₑ Rᵀ src) at node v; matrix-free, `fem.scatter("stiffness", src)` came before."""
+        """(Σ R Kₑ Rᵀ src) at node v, after `_multiply(src)`."""
         Kp = ti.Vector([0.0, 0.0, 0.0])
         if ti.static(self.operator == "assembled"):
             Kp = self.matrix.product_row(v, src)
@@ -252,15 +264,12 @@ class ImplicitEuler:
         g = ti.Vector(self.gravity)
         fem.update_rotations(self.x)
         if ti.static(self.operator == "assembled"):
-            self.matrix.rotate_gradients()
-            for v in range(fem.n_nodes):
-                self.matrix.assemble_row(v)
+            self.matrix.assemble()
         fem.scatter("force", self.x)
         for v in range(fem.n_nodes):  # the forces f(x, v), kept in r until the right-hand side is complete
             m = fem.mass[v]
             self.r[v] = fem.gathered(v) + m * g + self.external[v] - self.rayleigh_mass * m * self.v[v]
-        if ti.static(self.operator == "matrix_free"):
-            fem.scatter("stiffness", self.v)
+        self._multiply(self.v)
         for b in range(self.n_blocks):
             rz, rr = 0.0, 0.0
             for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
@@ -298,6 +307,8 @@ class ImplicitEuler:
             for e in range(fem.n_elements):  # element stage, skipped once converged
                 if self.scalars[DONE] == 0:
                     fem.scatter_element("stiffness", e, self.p)
+        else:
+            self.matrix.multiply(self.p)  # serial only (in parallel, rows multiply on demand)
         for b in range(self.n_blocks):  # q = A p (filtered), and pᵀq
             pq = 0.0
             if self.scalars[DONE] == 0:
