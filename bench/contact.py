@@ -13,6 +13,12 @@ and the contact-force error between the two, in one run on this machine.
                   pressed): per stage, and every 4th step with ≥ 420 rows the compliance stage's W
                   by warping against the exact W of the same rows (LU of this step's matrix,
                   solves, H A⁻¹ Hᵀ), ms and ratio, and the force error there.
+    row bands     per stage, the medians over the steps of both runs above with about 100 (50-170), 250 and
+                  450-500 constraint rows (the press's approach, its default, the wide alarm).
+    Gauss-Seidel  the frictional problems of the 450-row run (every 8th step with ≥ 420 rows),
+                  solved again with sweep caps 1, 2, 4, ... 512 by plain and by Anderson-accelerated
+                  Gauss-Seidel: natural-map residual against sweeps and against time
+                  (figures/contact_gauss_seidel.png).
     liver_floor   SOFA's contact scene of REFERENCE-TIMINGS.md: the 596-tet liver falls on a rigid
                   floor, μ 0.5, about 28 contacts at rest (SOFA: 1.79 ms/step warped, 5.95 exact)
 
@@ -32,6 +38,8 @@ from bench.common import machine, print_machine, write_results
 SOFA_FLOOR_MS = {"warped": 1.79, "exact": 5.95}
 STAGES = ("detection", "constraints", "compliance", "lcp", "correction")
 WIDE_DISTANCE = 4e-3     # m: liver_press's alarm distance widened to about 450 rows
+BANDS = {"~100": (50, 170), "~250": (200, 300), "450-500": (420, 520)}   # constraint rows
+CAPS = [2 ** k for k in range(10)]                                      # Gauss-Seidel sweep caps
 
 
 class LaunchCounter:
@@ -94,10 +102,11 @@ def exact_W(stage, rows) -> np.ndarray:
 
 
 def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int = 150,
-              overrides=()) -> dict:
+              overrides=(), problems=None) -> dict:
     """The scene stepped `steps` times. With check_every: every that many steps with at least
     `min_rows` rows, the exact W of the same rows (timed) and the force error of the warped one,
-    on the side (the run itself goes on with its own W)."""
+    on the side (the run itself goes on with its own W). `problems` (a list): gets the frictional
+    problems (W, q, μ, warm start) of the checked steps, as the stage posed them."""
     sim = press(compliance, overrides)
     stage = contact_stage(sim)
     checks, checked_steps = [], set()
@@ -118,10 +127,13 @@ def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int =
                     check.update(rows=rows.n_rows, exact_ms=exact_ms,
                                  warped_ms=1e3 * stage.stats.times["compliance"][-1])
                     checks.append(check)
+                    if problems is not None:
+                        problems.append(posed(W, rows, contacts, mu))
                     launches.paused = False
             return solve(W, rows, contacts, mu)
 
         stage._solve = checked
+        posed = _posed(solve)
     for _ in range(3):
         sim.step()
     with launches:
@@ -133,6 +145,28 @@ def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int =
                                 "max": float(np.max([c[k] for c in checks]))} for k in checks[0]}
         result["checks"]["states"] = len(checks)
     return result
+
+
+def _posed(solve):
+    """A function (W, rows, contacts, μ) -> the frictional problem the stage's `solve` poses."""
+    import tissue.contact.pipeline as pipeline
+
+    def posed(W, rows, contacts, mu):
+        got = []
+
+        class Recorder(pipeline.FrictionalContactSolver):
+            def solve(self, q, tol=1e-6, max_iterations=1000, r0=None):
+                got.append((self.W.copy(), np.array(q), self.mu.copy(), np.array(r0)))
+                return super().solve(q, tol, 0, r0)
+
+        original, pipeline.FrictionalContactSolver = pipeline.FrictionalContactSolver, Recorder
+        try:
+            solve(W, rows, contacts, mu)
+        finally:
+            pipeline.FrictionalContactSolver = original
+        return got[0]
+
+    return posed
 
 
 def run_floor(compliance: str, steps: int) -> dict:
@@ -172,9 +206,80 @@ def _collect(sim, steps: int, min_rows: int, skip=()) -> dict:
     ms = {name: 1e3 * float(np.median(times[name][keep])) for name in ("free_motion", "contact")}
     ms.update({s: 1e3 * float(np.median(times[f"contact: {s}"][keep])) for s in STAGES})
     ms["total"] = 1e3 * float(np.median((times["free_motion"] + times["contact"])[keep]))
+    valid = np.ones(steps, bool)
+    valid[np.isin(np.arange(steps) + start, list(skip))] = False
+    per_step = {name: 1e3 * times[name][valid] for name in ("free_motion", "contact")}
+    per_step.update({s: 1e3 * times[f"contact: {s}"][valid] for s in STAGES})
+    per_step.update(rows=rows[valid], gs_iterations=iters[valid])
     return {"ms_per_step": ms, "steps_measured": int(len(keep)), "rows_median": float(np.median(rows[keep])),
             "rows_max": int(rows.max()), "gs_iterations_median": float(np.median(iters[keep])),
-            "bodies": {n: {"tets": b.mesh.n_tets, "nodes": b.mesh.n_points} for n, b in sim.bodies.items()}}
+            "bodies": {n: {"tets": b.mesh.n_tets, "nodes": b.mesh.n_points} for n, b in sim.bodies.items()},
+            "per_step": per_step}
+
+
+def row_bands(*runs) -> dict:
+    """Per stage, the median ms over the steps of `runs` whose row count falls in each band."""
+    steps = {k: np.concatenate([r["per_step"][k] for r in runs]) for k in runs[0]["per_step"]}
+    out = {}
+    for band, (lo, hi) in BANDS.items():
+        sel = (steps["rows"] >= lo) & (steps["rows"] < hi)
+        if sel.any():
+            ms = {k: float(np.median(steps[k][sel])) for k in ("free_motion",) + STAGES}
+            ms["total"] = float(np.median(steps["free_motion"][sel] + steps["contact"][sel]))
+            out[band] = {"steps": int(sel.sum()), "rows_median": float(np.median(steps["rows"][sel])),
+                         "gs_iterations_median": float(np.median(steps["gs_iterations"][sel])), "ms_per_step": ms}
+    return out
+
+
+def gauss_seidel_curves(problems) -> dict:
+    """Residual and time against the sweep cap, plain and Anderson-accelerated Gauss-Seidel, on the
+    stage's own (scaled) problems with their warm starts; medians over the problems."""
+    from tissue.contact.frictional_contact import ANDERSON_WINDOW, FrictionalContactSolver
+
+    out = {}
+    for name, window in (("plain", 0), ("anderson", ANDERSON_WINDOW)):
+        res, ms, its = [], [], []
+        for W, q, mu, r0 in problems:
+            solver = FrictionalContactSolver(W, mu, anderson=window, check=False)
+            solver.solve(q, 1e-6, 1, r0=r0)                       # compile and warm up
+            row = [min((solver.solve(q, 1e-12, cap, r0=r0)[1] for _ in range(3)), key=lambda i: i.time_s)
+                   for cap in CAPS]
+            res.append([i.residual for i in row])
+            ms.append([1e3 * i.time_s for i in row])
+            its.append(solver.solve(q, 1e-6, 10_000, r0=r0)[1].iterations)
+        out[name] = {"caps": CAPS, "residual": np.median(res, axis=0).tolist(), "ms": np.median(ms, axis=0).tolist(),
+                     "sweeps_to_1e-6": {"median": float(np.median(its)), "max": int(np.max(its))}}
+    out["problems"], out["rows_median"] = len(problems), float(np.median([len(p[1]) for p in problems]))
+    return out
+
+
+def plot_gauss_seidel(curves: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bench.common import FIGURES
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
+    for name, style in (("plain", "o-"), ("anderson", "s-")):
+        c = curves[name]
+        label = f"{name} (to 1e-6: {c['sweeps_to_1e-6']['median']:.0f} sweeps, median)"
+        axes[0].loglog(c["caps"], c["residual"], style, label=label, ms=3)
+        axes[1].loglog(c["ms"], c["residual"], style, label=name, ms=3)
+    for ax in axes:
+        ax.axhline(1e-6, color="grey", lw=0.8, ls="--")
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].set_xlabel("Gauss-Seidel sweeps")
+    axes[1].set_xlabel("time (ms)")
+    axes[0].set_ylabel("natural-map residual")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"liver_press, {curves['problems']} frictional problems of ~{curves['rows_median']:.0f} rows "
+                 "(warm-started)", fontsize=9)
+    fig.tight_layout()
+    FIGURES.mkdir(exist_ok=True)
+    fig.savefig(FIGURES / "contact_gauss_seidel.png", dpi=130)
+    plt.close(fig)
 
 
 def _table(name: str, results: dict) -> None:
@@ -225,7 +330,9 @@ def main(argv=None) -> int:
     print("kernel launches per step (warped): " + ", ".join(f"{k} {v:.1f}" for k, v in calls.items()))
 
     # The paper's 450 constraints: the same scene with a wider alarm distance (more contact points).
-    wide = run_press("warped", 72, check_every=4, min_rows=420, overrides=[f"contact.distance={WIDE_DISTANCE}"])
+    problems = []
+    wide = run_press("warped", 72, check_every=4, min_rows=420, overrides=[f"contact.distance={WIDE_DISTANCE}"],
+                     problems=problems)
     out["liver_press_450_rows"] = wide
     if "checks" in wide:
         c = wide["checks"]
@@ -237,6 +344,23 @@ def main(argv=None) -> int:
               f"exact / warped = {c['exact_ms']['median'] / c['warped_ms']['median']:.0f}x")
         _errors(c, "at ≥ 420 rows")
 
+    bands = row_bands(press_results["warped"], wide)
+    out["row_bands"] = bands
+    print(f"\nwarped, by constraint rows (medians, ms/step):\n{'rows':<9}{'steps':>6}{'GS it':>7}"
+          + "".join(f"{k:>13}" for k in ("free_motion",) + STAGES + ("total",)))
+    for band, b in bands.items():
+        print(f"{band:<9}{b['steps']:>6}{b['gs_iterations_median']:>7.0f}"
+              + "".join(f"{b['ms_per_step'][k]:13.2f}" for k in ("free_motion",) + STAGES + ("total",)))
+    if problems:
+        curves = gauss_seidel_curves(problems)
+        out["gauss_seidel"] = curves
+        plot_gauss_seidel(curves)
+        for name in ("plain", "anderson"):
+            c = curves[name]
+            print(f"Gauss-Seidel {name}: sweeps to 1e-6 median {c['sweeps_to_1e-6']['median']:.0f} (max "
+                  f"{c['sweeps_to_1e-6']['max']}); residual after {CAPS[-4]} sweeps {c['residual'][-4]:.1e} in "
+                  f"{c['ms'][-4]:.2f} ms")
+
     if not args.quick:
         floor = {c: run_floor(c, args.steps) for c in ("warped", "exact")}
         out["liver_floor"] = floor
@@ -245,6 +369,9 @@ def main(argv=None) -> int:
         out["liver_floor"]["exact_over_warped_contact"] = ratio
         print(f"contact stage: exact / warped = {ratio:.1f}x (SOFA: warped {SOFA_FLOOR_MS['warped']} ms/step "
               f"in total, exact {SOFA_FLOOR_MS['exact']})")
+    for run in (*press_results.values(), wide, *(out.get("liver_floor", {}).values())):
+        if isinstance(run, dict):
+            run.pop("per_step", None)
     write_results("contact-quick" if args.quick else "contact", out)
     return 0
 

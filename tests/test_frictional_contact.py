@@ -254,6 +254,22 @@ def test_soft_body_300_contacts(solve):
     assert iw.iterations == 0 and iw.converged
 
 
+@pytest.mark.parametrize("mu", [0.0, 0.3])
+def test_anderson_matches_plain_gauss_seidel(solve, mu):
+    """Anderson-accelerated sweeps reach the plain sweeps' solution (an independent residual, and
+    an LCP by enumeration when frictionless), in fewer sweeps on a strongly coupled soft body."""
+    rng = np.random.default_rng(3)
+    W, q, _ = soft_body_problem(60 if mu else 8, 200, rng)
+    plain, ip = solve(W, q, mu, tol=1e-10, max_iterations=20000, anderson=0)
+    fast, ia = solve(W, q, mu, tol=1e-10, max_iterations=20000)
+    assert ip.converged and ia.converged and natural_map(W, q, mu, fast) <= 1e-10
+    np.testing.assert_allclose(fast, plain, atol=1e-7 * np.abs(plain).max())
+    if mu == 0:
+        np.testing.assert_allclose(fast[0::3], lcp_by_enumeration(W[0::3, 0::3], q[0::3]), atol=1e-8)
+    else:
+        assert ia.iterations < ip.iterations
+
+
 @pytest.mark.parametrize("method", ["gauss_seidel", "jacobi"])
 def test_rigid_bodies_sparse_csr_matches_dense(solve, method):
     from tissue.contact import FrictionalContactSolver
