@@ -22,6 +22,14 @@ bench/results/accuracy.json):
              self-weight qL³/EI = 1, 5, 10), refined 2, 3, 4, 6 cubes across (L/h = 20) with
              "large" (the default), 2, 3 with "polar" and St Venant–Kirchhoff (slower references),
              and the Richardson limit of the three finest "large" meshes.
+  contact    the free block of bench/stability.py (4 × 4 × 2 cm, E 1e4 Pa, ν 0.45, dt 0.04 s,
+             Rayleigh 0.1/0.1, converged Jacobi CG), μ 0.5, 25 steps: launched along the floor at
+             0.3 m/s (slides, then sticks), and released on the 25° slope (sticks: tan 25° < μ).
+             Compliance warped or exact × Gauss-Seidel sweeps 5 … 1000 (tolerance 1e-12 m) and
+             tolerance 1e-2 … 1e-8 m (≤ 10,000 sweeps), against the exact compliance converged to
+             1e-12 m (≤ 20,000 sweeps): error of the contact forces gathered on the nodes (over all
+             steps) and of the positions after 25 steps, and the time per step (free motion +
+             contact).
 
 Which code computes what: static equilibria are Newton solves in bench/nonlinear_reference.py
 (numpy/scipy; co-rotational forces as tissue.solver.reference, with their exact differenced
@@ -54,6 +62,8 @@ TIP_LOADS = {1: 0.30172, 2: 0.49346, 5: 0.71379, 10: 0.81061}       # PL²/EI ->
 SELF_WEIGHT = {1: 0.12347, 5: 0.49591, 10: 0.70020}                # qL³/EI -> v/L
 ENERGY_LOADS = (0.1, 0.3, 1, 2, 3, 5, 10)                          # qL³/EI, growing rotation
 GRAVITY = (0.0, 0.0, -9.81)
+CONTACT_SCENES = ("floor", "slope")       # modes of bench.stability's friction cells
+CONTACT = dict(friction=0.5, dt=0.04, steps=25)
 
 
 def _beam(scene):
@@ -218,16 +228,50 @@ def relaxation_cell(cell: dict) -> dict:
     return {**cell, "rows": rows, "seconds": time.perf_counter() - start}
 
 
+def contact_cell(cell: dict) -> dict:
+    """A friction cell of bench/stability.py (its block, initial state and obstacle) with converged
+    CG and the cell's compliance and Gauss-Seidel stopping rule: contact forces gathered on the
+    nodes at every step, final positions, ms per step."""
+    from bench import stability
+    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.fem import Material
+
+    worker_backend(cell["arch"])
+    scene = dict(case="friction", mode=cell["scene"], friction=CONTACT["friction"], dt=CONTACT["dt"])
+    mesh = stability._mesh(stability.body_of(scene))
+    x, v, fixed = stability.initial_state(scene, mesh)
+    solver = _solver(mesh, Material(stability.TISSUE["young"], stability.TISSUE["poisson"], 1000.0), fixed,
+                     CONTACT["dt"], max_iterations=500, tolerance=1e-10, preconditioner="jacobi")
+    solver.set_state(x, v)
+    stage = ContactStage([solver], stability.obstacles(scene, mesh), ContactSettings(
+        friction=CONTACT["friction"], contact_distance=stability.CONTACT_DISTANCE, compliance=cell["compliance"],
+        tolerance=cell["tolerance"], max_iterations=cell["iterations"]), stats=solver.stats)
+    forces = []
+    for _ in range(CONTACT["steps"]):
+        solver.step()
+        r = stage.step()
+        f = np.zeros_like(x)
+        np.add.at(f, r.contacts.vertex, r.contact_forces)
+        forces.append(f)
+    history = solver.stats.history
+    return {**cell, "ms_per_step": _ms_per_step(solver.stats), "forces": np.asarray(forces).tolist(),
+            "positions": solver.positions().tolist(), "start": x.tolist(),
+            "gs_iterations": float(np.mean(history["gs_iterations"])), "gs_residual": float(max(history["gs_residual"])),
+            "rows": int(max(history["rows"]))}
+
+
 def run_cell(cell: dict) -> dict:
     return {"direct": direct_trajectory, "solver": solver_cell, "timestep": timestep_cell,
-            "static": static_cell, "relaxation": relaxation_cell}[cell["section"]](cell)
+            "static": static_cell, "relaxation": relaxation_cell, "contact": contact_cell}[cell["section"]](cell)
 
 
 # ---- the sweep -------------------------------------------------------------------------------
 
 def cells(quick: bool, arch: str) -> list[dict]:
+    from tissue.solver.implicit_euler import PRECONDITIONERS
+
     out = [dict(section="direct", rotation=r) for r in ("large", "polar")]
-    for pre in ("none", "jacobi"):
+    for pre in PRECONDITIONERS:
         for it in ((5, 25, 100, 400) if quick else (5, 10, 25, 50, 100, 200, 400)):
             out.append(dict(section="solver", group="iterations", preconditioner=pre, iterations=it))
     for tol in ((1e-2, 1e-4) if quick else (1e-1, 1e-2, 1e-3, 1e-4, 1e-6)):
@@ -249,6 +293,16 @@ def cells(quick: bool, arch: str) -> list[dict]:
                 out.append(dict(section="static", group="elastica", model=model, kind=kind, n=n, loads=loads))
         if n <= (3 if quick else 4):
             out.append(dict(section="relaxation", n=n, loads=list(SELF_WEIGHT)))
+    for scene in CONTACT_SCENES:
+        out.append(dict(section="contact", scene=scene, group="reference", compliance="exact", iterations=20000,
+                        tolerance=1e-12))
+        for compliance in ("warped", "exact"):
+            for it in ((5, 25, 100, 1000) if quick else (5, 10, 25, 50, 100, 200, 1000)):
+                out.append(dict(section="contact", scene=scene, group="iterations", compliance=compliance,
+                                iterations=it, tolerance=1e-12))
+            for tol in ((1e-3, 1e-6) if quick else (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8)):
+                out.append(dict(section="contact", scene=scene, group="tolerance", compliance=compliance,
+                                iterations=10000, tolerance=tol))
     for c in out:
         c["arch"] = arch
     # Longest first, so that the two workers finish together.
@@ -332,6 +386,18 @@ def analyse(results: list[dict]) -> dict:
                                                 deflection=row["deflection"], exact=exact[row["load"]],
                                                 error=row["deflection"] / exact[row["load"]] - 1, steps=row["steps"],
                                                 cg_iterations=row["cg_iterations"]))
+    # contact: forces and positions against the exact, tightly converged run of the same scene
+    out["contact"] = []
+    for scene in CONTACT_SCENES:
+        ref = next((r for r in by(section="contact", scene=scene, group="reference") if "forces" in r), None)
+        if ref is None:       # (re-plotting from the JSON: the errors are stored there)
+            out["contact"] += [{k: r[k] for k in CONTACT_KEYS if k in r} for r in by(section="contact", scene=scene)]
+            continue
+        F, x, x0 = (np.asarray(ref[k]) for k in ("forces", "positions", "start"))
+        for r in by(section="contact", scene=scene):
+            r["force_error"] = float(np.linalg.norm(np.asarray(r["forces"]) - F) / np.linalg.norm(F))
+            r["position_error"] = float(np.linalg.norm(np.asarray(r["positions"]) - x) / np.linalg.norm(x - x0))
+            out["contact"].append({k: r[k] for k in CONTACT_KEYS})
     out["extrapolated"] = []
     for kind, exact in (("tip", TIP_LOADS), ("self", SELF_WEIGHT)):
         rows = [e for e in out["elastica"] if e["kind"] == kind and e["model"] == "large"]
@@ -344,6 +410,10 @@ def analyse(results: list[dict]) -> dict:
                     out["extrapolated"].append(dict(kind=kind, load=load, meshes=ns, limit=fit[0], order=fit[1],
                                                     exact=value, error=fit[0] / value - 1))
     return out
+
+
+CONTACT_KEYS = ("scene", "group", "compliance", "iterations", "tolerance", "ms_per_step", "gs_iterations",
+                "gs_residual", "rows", "force_error", "position_error")
 
 
 def _extrema(z):
@@ -386,7 +456,8 @@ def plot(summary: dict, results: list[dict]) -> list:
     solver = summary["solver"]
     for ax, key, title in ((axes[0], "step_error", "one step vs the direct solve of that step"),
                            (axes[1], "trajectory_error", "after 25 steps vs the direct trajectory")):
-        for pre, style in (("none", "o-"), ("jacobi", "s-")):
+        for pre, style in zip(sorted({r["preconditioner"] for r in solver if r["group"] == "iterations"}),
+                              ("o-", "s-", "D-", "v-", "p-")):
             rows = sorted([r for r in solver if r["group"] == "iterations" and r["preconditioner"] == pre],
                           key=lambda r: r["iterations"])
             ax.plot([r["ms_per_step"] for r in rows], [r[key] for r in rows], style, label=f"CG iterations, {pre}")
@@ -507,6 +578,36 @@ def plot(summary: dict, results: list[dict]) -> list:
     paths.append(FIGURES / "accuracy_rotation_elastica.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
+
+    # 4. contact: compliance model and Gauss-Seidel stopping rule
+    contact = summary.get("contact", [])
+    if contact:
+        fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+        for col, scene in enumerate(CONTACT_SCENES):
+            rows = [r for r in contact if r["scene"] == scene]
+            for row, key in enumerate(("force_error", "position_error")):
+                ax = axes[row, col]
+                for compliance, color in (("warped", "C0"), ("exact", "C3")):
+                    for group, style, label in (("iterations", "o-", "GS sweeps"), ("tolerance", "^--", "GS tolerance (m)")):
+                        line = sorted((r for r in rows if r["compliance"] == compliance and r["group"] == group),
+                                      key=lambda r: r["iterations"] if group == "iterations" else -r["tolerance"])
+                        # An error of 0 (the reference itself) has no place on a log axis.
+                        ys = [max(r[key], 1e-16) for r in line]
+                        ax.plot([r["ms_per_step"] for r in line], ys, style, color=color, label=f"{compliance}, {label}")
+                        for r, y in zip(line, ys):
+                            ax.annotate(str(r["iterations"]) if group == "iterations" else f"{r['tolerance']:g}",
+                                        (r["ms_per_step"], y), textcoords="offset points",
+                                        xytext=(4, 4 if group == "iterations" else -10), fontsize=7)
+                ax.set(xscale="log", yscale="log", xlabel="ms per step (free motion + contact, 1 CPU thread)",
+                       ylabel=f"relative {'contact-force' if key == 'force_error' else 'position'} error",
+                       title=f"{scene}: {'nodal contact forces, all 25 steps' if key == 'force_error' else 'positions after 25 steps'}"
+                             " vs exact, 1e-12 m")
+                ax.grid(True, which="both", alpha=0.3)
+                ax.legend(fontsize=7)
+        fig.tight_layout()
+        paths.append(FIGURES / "accuracy_contact.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
     return paths
 
 
@@ -543,7 +644,7 @@ def main(argv=None):
             print("cell failed:", {k: v for k, v in r.items() if k not in ("positions", "tip")})
     summary = analyse(results)
 
-    slim = [{k: v for k, v in r.items() if k != "positions"} for r in results]
+    slim = [{k: v for k, v in r.items() if k not in ("positions", "forces", "start")} for r in results]
     write_results("accuracy", {"machine": info, "summary": summary, "cells": slim})
     for p in plot(summary, results):
         print(f"# wrote {p}")
@@ -575,6 +676,13 @@ def report(summary: dict) -> str:
             lines.append(f"| {e['load']:g} | {e['tip_angle']:.1f}° | {100 * e['large_energy_error']:.2f} % | "
                          f"{100 * e['polar_energy_error']:.2f} % | {100 * e['linear_energy_error']:.1f} % | "
                          f"{100 * e['large_deflection_error']:.2f} % | {100 * e['linear_deflection_error']:.1f} % |")
+    if summary.get("contact"):
+        lines += ["", "| scene | compliance | GS sweeps (cap) | tolerance (m) | ms/step | sweeps (mean) | residual (max, m) "
+                  "| rows | force error | position error |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in summary["contact"]:
+            lines.append(f"| {r['scene']} | {r['compliance']}{' (reference)' if r['group'] == 'reference' else ''} | "
+                         f"{r['iterations']} | {r['tolerance']:g} | {r['ms_per_step']:.2f} | {r['gs_iterations']:.0f} | "
+                         f"{r['gs_residual']:.1e} | {r['rows']} | {r['force_error']:.2e} | {r['position_error']:.2e} |")
     finest = lambda m: max((e["n"] for e in summary["elastica"] if e["model"] == m), default=0)
     large_ns = sorted({e["n"] for e in summary["elastica"] if e["model"] == "large"})
     lines += ["", "| load | exact v/L | " + " | ".join(f"large n={n}" for n in large_ns)

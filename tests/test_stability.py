@@ -43,6 +43,25 @@ def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
     assert r["outcome"] == "bounded", r
 
 
+# ---- with contact (rigid obstacles, Coulomb friction, compliance warping) ------------------------
+
+@pytest.mark.parametrize("mode, mu, slides", [("floor", 0.0, True), ("floor", 10.0, False),
+                                              ("slope", 0.1, True), ("slope", 1.0, False)])
+def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides):
+    """Launched along the floor at 0.3 m/s, or released on the 25° slope (tan 25° = 0.47): in 2 s
+    it slides metres where μ allows, and stops within a few millimetres where it does not."""
+    r = outcome(dict(case="friction", mode=mode, friction=mu, dt=0.04, steps=50, rotation="polar"))
+    assert r["outcome"] == "bounded" and r["contacts_max"] > 0, r
+    assert r["travel"] > 0.5 if slides else r["travel"] < 0.01, r
+
+
+def test_slab_pressed_by_a_plate_has_over_2000_rows(backend):
+    """The first steps of the press: 2 × 361 surface vertices touch floor and plate at once."""
+    r = outcome(dict(case="press", mode="plate", friction=0.5, dt=0.04, steps=3, rotation="polar"))
+    assert r["rows_max"] > 2000, r
+    assert r["outcome"] == "bounded", r
+
+
 def test_gravity_from_rest_loses_energy(backend):
     r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="large"))
     assert r["outcome"] == "bounded" and r["energy_net"] < 0, r
