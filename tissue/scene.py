@@ -173,7 +173,7 @@ class Solver(Options):
 
     cg_iterations: int = 25
     cg_tolerance: float = 1e-9
-    preconditioner: Literal["none", "jacobi"] = "none"
+    preconditioner: Literal["none", "jacobi", "multigrid"] = "none"
     rayleigh_mass: float = 0.1          # damping: alpha_M (1/s)
     rayleigh_stiffness: float = 0.1     # damping: alpha_K (s)
     accumulation: Literal["gather", "atomic"] = "gather"

@@ -53,45 +53,18 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
-from ..fem.corotational import polar_rotation
+from ..fem.corotational import nodal_rotation
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 
 SERIAL_BELOW = 10_000    # nodes: below, the CPU runs the compliance loops on one thread
 
 
-@ti.func
-def _nodal_rotation(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), v, tol):
-    """The orthonormalised average of the rotations of the elements around node v: the rotation
-    of the polar decomposition of their mean X₀. Newton–Schulz, X ← X (3I - XᵀX) / 2, converges
-    to it quadratically when the rotations are alike (X₀ nearly orthogonal: a few 3×3 products);
-    otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM."""
-    X = ti.Matrix.zero(float, 3, 3)
-    for k in range(offsets[v], offsets[v + 1]):
-        X += Re[incidence[k] // 4]
-    S = X / ti.max(offsets[v + 1] - offsets[v], 1)
-    X = S
-    done = False
-    if S.determinant() > 0.0:
-        for _ in range(12):
-            E = X.transpose() @ X - ti.Matrix.identity(float, 3)
-            e = E.norm()
-            if e > 0.5:                             # too far from orthogonal for Newton–Schulz
-                break
-            X = X - 0.5 * (X @ E)
-            if e <= tol:
-                done = True
-                break
-    if not done:
-        X = polar_rotation(S, tol)
-    return X
-
-
 @ti.kernel
 def _nodal_rotations(Re: ti.template(), offsets: ti.template(), incidence: ti.template(),
                      out: ti.template(), tol: float):
     for v in out:
-        out[v] = _nodal_rotation(Re, offsets, incidence, v, tol)
+        out[v] = nodal_rotation(Re, offsets, incidence, v, tol)
 
 
 @ti.func
@@ -115,7 +88,7 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
     ti.loop_config(serialize=serial)
     for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
-        R[v] = _nodal_rotation(Re, offsets, incidence, v, tol)
+        R[v] = nodal_rotation(Re, offsets, incidence, v, tol)
     ti.loop_config(serialize=serial)
     for e in range(nnz):                            # kernel 1
         V = ti.Matrix.zero(float, 3, 3)

@@ -104,6 +104,33 @@ def polar_rotation(F, tol):
     return X
 
 
+@ti.func
+def nodal_rotation(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), v, tol):
+    """The orthonormalised average of the rotations of the elements around node v: the rotation
+    of the polar decomposition of their mean X₀. Newton–Schulz, X ← X (3I - XᵀX) / 2, converges
+    to it quadratically when the rotations are alike (X₀ nearly orthogonal: a few 3×3 products);
+    otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM."""
+    X = ti.Matrix.zero(float, 3, 3)
+    for k in range(offsets[v], offsets[v + 1]):
+        X += Re[incidence[k] // 4]
+    S = X / ti.max(offsets[v + 1] - offsets[v], 1)
+    X = S
+    done = False
+    if S.determinant() > 0.0:
+        for _ in range(12):
+            E = X.transpose() @ X - ti.Matrix.identity(float, 3)
+            e = E.norm()
+            if e > 0.5:                             # too far from orthogonal for Newton–Schulz
+                break
+            X = X - 0.5 * (X @ E)
+            if e <= tol:
+                done = True
+                break
+    if not done:
+        X = polar_rotation(S, tol)
+    return X
+
+
 @ti.data_oriented
 class CorotationalFEM:
     """The elastic part of one soft body: rest data, rotations, forces and stiffness products.

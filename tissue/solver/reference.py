@@ -138,12 +138,18 @@ def reference_step(mesh: TetMesh, material: Material, x: np.ndarray, v: np.ndarr
     return x + dt * v_new, v_new
 
 
+def rest_matrix(mesh: TetMesh, material: Material, dt: float, rayleigh_mass=0.0,
+                rayleigh_stiffness=0.0) -> sp.csr_matrix:
+    """The step matrix A₀ of the rest configuration (all dofs, no fixed ones removed)."""
+    return linearise(mesh, material, mesh.points, np.zeros_like(mesh.points), dt,
+                     rayleigh_mass=rayleigh_mass, rayleigh_stiffness=rayleigh_stiffness).A
+
+
 def rest_compliance(mesh: TetMesh, material: Material, dt: float, fixed=(),
                     rayleigh_mass=0.0, rayleigh_stiffness=0.0) -> np.ndarray:
     """Dense A₀⁻¹ of the rest configuration (zero rows/columns at fixed dofs)."""
-    system = linearise(mesh, material, mesh.points, np.zeros_like(mesh.points), dt,
-                       rayleigh_mass=rayleigh_mass, rayleigh_stiffness=rayleigh_stiffness)
+    A = rest_matrix(mesh, material, dt, rayleigh_mass, rayleigh_stiffness)
     free = free_dofs(mesh.n_points, fixed)
     C = np.zeros((3 * mesh.n_points, 3 * mesh.n_points))
-    C[np.ix_(free, free)] = scipy.linalg.inv(system.A[free][:, free].toarray())
+    C[np.ix_(free, free)] = scipy.linalg.inv(A[free][:, free].toarray())
     return C
