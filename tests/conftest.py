@@ -13,3 +13,23 @@ def backend():
     from tissue import backend as be
 
     return be.init(arch=os.environ.get("TISSUE_ARCH", "cpu"), precision="f64")
+
+
+@pytest.fixture(scope="session")
+def solver(backend):
+    """solver(rotation, accumulation, execution, operator, preconditioner): one ImplicitEuler on
+    test_solver's standard beam with its standard step (STEP, TIGHT), built once per configuration
+    for the whole session: Taichi compiles kernels per solver object (~10-30 s each here), so tests
+    that can share a configuration share one, resetting its state with `set_state`."""
+    from test_solver import make_solver
+
+    cache = {}
+
+    def get(rotation="large", accumulation="gather", execution="serial", operator="assembled",
+            preconditioner="none"):
+        key = (rotation, accumulation, execution, operator, preconditioner)
+        if key not in cache:
+            cache[key] = make_solver(*key)
+        return cache[key]
+
+    return get

@@ -404,7 +404,6 @@ class Body:
                 fixed=self.fixed, execution=s.execution, operator=s.operator)
         except TissueError as err:
             raise TissueError(f"{name}: {err}") from None
-        self._stress = None
         self._visual = None
 
     def visual(self):
@@ -436,12 +435,8 @@ class Body:
 
     def element_stress(self) -> np.ndarray:
         """Co-rotational Cauchy-like stress R σ Rᵀ of each element (m, 3, 3), at the current positions."""
-        import taichi as ti
-
-        if self._stress is None:  # allocated once, so the kernel compiles once
-            self._stress = ti.Matrix.field(3, 3, self.fem.R.dtype, self.fem.n_elements)
-        self.fem._stress_kernel(self.solver.x, self._stress)
-        return self._stress.to_numpy().astype(np.float64)
+        self.fem._stress_kernel(self.solver.x, self.fem._stress_field)
+        return self.fem._stress_field.to_numpy().astype(np.float64)
 
     def von_mises(self) -> np.ndarray:
         """Von Mises equivalent stress of each element (Pa)."""

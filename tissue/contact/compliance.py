@@ -173,10 +173,11 @@ class WarpedCompliance:
         C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
                              rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
         self.C0_host = 0.5 * (C0 + C0.T)          # symmetric to round-off; the kernels rely on it
-        self.C0 = ti.field(dtype=self.real, shape=self.C0_host.shape)
+        with backend.fields_of(self):
+            self.C0 = ti.field(dtype=self.real, shape=self.C0_host.shape)
+            self.R = ti.Matrix.field(3, 3, self.real, fem.n_nodes)
+            self.r0 = ti.Vector.field(3, self.real, fem.n_nodes)
         self.C0.from_numpy(self.C0_host.astype(self._np))
-        self.R = ti.Matrix.field(3, 3, self.real, fem.n_nodes)
-        self.r0 = ti.Vector.field(3, self.real, fem.n_nodes)
         self._tol = fem.rotation_tolerance
         self.hr = self.U = None
         self.jds, self._ready = None, False
@@ -198,10 +199,11 @@ class WarpedCompliance:
         self.jds, self._ready = jds, False
         d = 3 * len(jds.touched)
         # Scratch fields grow (a new field recompiles the kernels: rare, by doubling).
-        if self.hr is None or self.hr.shape[0] < jds.nnz:
-            self.hr = ti.Matrix.field(3, 3, self.real, max(1024, 2 * jds.nnz))
-        if self.U is None or self.U.shape[0] < jds.n_active * d:
-            self.U = ti.Vector.field(3, self.real, max(1 << 16, 2 * jds.n_active * d))
+        with backend.fields_of(self):
+            if self.hr is None or self.hr.shape[0] < jds.nnz:
+                self.hr = ti.Matrix.field(3, 3, self.real, max(1024, 2 * jds.nnz))
+            if self.U is None or self.U.shape[0] < jds.n_active * d:
+                self.U = ti.Vector.field(3, self.real, max(1 << 16, 2 * jds.n_active * d))
 
     def _args(self):
         jds = self.jds

@@ -395,14 +395,19 @@ def read_state(x: ti.template(), v: ti.template(), h: float, out: ti.types.ndarr
 # the detector
 # --------------------------------------------------------------------------------------------
 
-def _field(values: np.ndarray, dtype, n: int = 0):
-    """A constant Taichi field (a vector field of n components when n > 0) holding `values`."""
+def _field(values: np.ndarray, dtype, fills: list, n: int = 0):
+    """A field (a vector field of n components when n > 0) to hold `values`: declared now, filled
+    by `_fill(fills)` once the owner's fields are all declared (see backend.fields_of)."""
     values = np.ascontiguousarray(values)
-    shape = max(1, len(values))
-    f = ti.Vector.field(n, dtype, shape) if n else ti.field(dtype, shape)
+    f = ti.Vector.field(n, dtype, max(1, len(values))) if n else ti.field(dtype, max(1, len(values)))
     if len(values):
-        f.from_numpy(values)
+        fills.append((f, values))
     return f
+
+
+def _fill(fills: list) -> None:
+    for f, values in fills:
+        f.from_numpy(values)
 
 
 class _Surface:
@@ -412,22 +417,26 @@ class _Surface:
         nodes, weights = samples
         self.faces_np = faces
         self.n_samples = len(nodes)
-        self.nodes, self.weights = _field(nodes, ti.i32, 3), _field(weights.astype(npr), real, 3)
-        self.faces = _field(faces, ti.i32, 3)
         surface = np.unique(faces).astype(np.int32)
-        self.surface = _field(surface, ti.i32)
         # Faces around each surface node (CSR, ascending face id), for the vertex normals.
         corner_node = np.searchsorted(surface, faces.reshape(-1))
         order = np.argsort(corner_node, kind="stable")
         offsets = np.zeros(len(surface) + 1, np.int32)
         np.cumsum(np.bincount(corner_node, minlength=len(surface)), out=offsets[1:])
-        self.vf_offsets, self.vf = _field(offsets, ti.i32), _field((order // 3).astype(np.int32), ti.i32)
-        self.normals = ti.Vector.field(3, real, max(n_nodes, 1))
-        # The grid of this body's triangles (built on the device at each detection).
-        self.start = ti.field(ti.i32, GRID_MAX_CELLS + 1)
-        self.cursor = ti.field(ti.i32, GRID_MAX_CELLS)
-        self.ids = ti.field(ti.i32, max(1024, 27 * len(faces)))
-        self.grid_i, self.grid_f = ti.field(ti.i32, 8), ti.field(real, 4)
+        fills = []
+        with backend.fields_of(self):
+            self.nodes, self.weights = _field(nodes, ti.i32, fills, 3), _field(weights.astype(npr), real, fills, 3)
+            self.faces = _field(faces, ti.i32, fills, 3)
+            self.surface = _field(surface, ti.i32, fills)
+            self.vf_offsets = _field(offsets, ti.i32, fills)
+            self.vf = _field((order // 3).astype(np.int32), ti.i32, fills)
+            self.normals = ti.Vector.field(3, real, max(n_nodes, 1))
+            # The grid of this body's triangles (built on the device at each detection).
+            self.start = ti.field(ti.i32, GRID_MAX_CELLS + 1)
+            self.cursor = ti.field(ti.i32, GRID_MAX_CELLS)
+            self.ids = ti.field(ti.i32, max(1024, 27 * len(faces)))
+            self.grid_i, self.grid_f = ti.field(ti.i32, 8), ti.field(real, 4)
+        _fill(fills)
         self.cell = None                          # base cell size: set at the first detection
         self.out = np.empty((self.n_samples + 1, n_slots, 11), npr)
 
@@ -453,17 +462,19 @@ class Detector:
         prims = [o.primitives for o in self.obstacles]
         counts = [len(p) for p in prims]
         self.has_primitives = sum(counts) > 0
-        self._prm = ti.field(self.real, (max(1, sum(counts)), 16))
+        balls = [o.bounding_balls() for o in self.obstacles]
+        fills = []
+        with backend.fields_of(self):
+            self._prm = ti.field(self.real, (max(1, sum(counts)), 16))
+            self._prm_offsets = _field(np.r_[0, np.cumsum(counts)].astype(np.int32), ti.i32, fills)
+            self._prm_bounds = ti.field(self.real, (max(1, sum(counts)), 4))
+            self._bounds = ti.field(self.real, (max(1, len(balls)), 4))
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
-        self._prm_offsets = _field(np.r_[0, np.cumsum(counts)].astype(np.int32), ti.i32)
-        balls = [o.bounding_balls() for o in self.obstacles]
-        self._prm_bounds = ti.field(self.real, (max(1, sum(counts)), 4))
-        self._bounds = ti.field(self.real, (max(1, len(balls)), 4))
-        if self.has_primitives:
             self._prm_bounds.from_numpy(np.concatenate([b for b, _ in balls]).astype(self._np))
         if balls:
             self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
+        _fill(fills)
         self._moving = [o.motion is not None for o in self.obstacles]
         self._fields = {}
         self._bodies = None
@@ -477,7 +488,8 @@ class Detector:
         if isinstance(positions, np.ndarray):
             f = self._fields.get(body)
             if f is None or f.shape[0] != len(positions):
-                f = self._fields[body] = ti.Vector.field(3, self.real, len(positions))
+                with backend.fields_of(self):
+                    f = self._fields[body] = ti.Vector.field(3, self.real, len(positions))
             f.from_numpy(positions.astype(self._np))
             return f
         return positions
@@ -546,7 +558,8 @@ class Detector:
                 needed = int(out[-1, slot, 0]) if soft else 0
                 if needed <= other.ids.shape[0]:
                     break
-                other.ids = ti.field(ti.i32, 2 * needed)  # grow and redo (rare)
+                with backend.fields_of(other):
+                    other.ids = ti.field(ti.i32, 2 * needed)  # grow and redo (rare)
         return out
 
     def _mesh(self, a, x, o, obstacle, pose, out) -> None:

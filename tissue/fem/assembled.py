@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 import taichi as ti
 
+from .. import backend
 from .corotational import CorotationalFEM, int_field
 
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
@@ -72,15 +73,17 @@ class BlockRows:
         self.fem = fem
         n, real = fem.n_nodes, fem.R.dtype
         offsets, columns, slots, diagonal = block_pattern(fem.mesh.tets, n, fem.incidence.to_numpy())
+        gradients = shape_gradients(fem)
         self.n_blocks = len(columns)
-        self.gradients = ti.Matrix.field(3, 4, real, fem.n_elements)
-        self.rotated = ti.Matrix.field(3, 4, real, fem.n_elements)   # R ∇N, once per step
-        self.row_offsets = int_field(n + 1)
-        self.columns = int_field(self.n_blocks)
-        self.slots = int_field(len(slots), 4)
-        self.diagonal_slot = int_field(n)
-        self.blocks = ti.Matrix.field(3, 3, real, self.n_blocks)
-        self.gradients.from_numpy(shape_gradients(fem))
+        with backend.fields_of(self):
+            self.gradients = ti.Matrix.field(3, 4, real, fem.n_elements)
+            self.rotated = ti.Matrix.field(3, 4, real, fem.n_elements)   # R ∇N, once per step
+            self.row_offsets = int_field(n + 1)
+            self.columns = int_field(self.n_blocks)
+            self.slots = int_field(len(slots), 4)
+            self.diagonal_slot = int_field(n)
+            self.blocks = ti.Matrix.field(3, 3, real, self.n_blocks)
+        self.gradients.from_numpy(gradients)
         self.row_offsets.from_numpy(offsets)
         self.columns.from_numpy(columns)
         self.slots.from_numpy(slots)
@@ -142,16 +145,18 @@ class SymmetricBlocks:
         self.n_blocks = len(keys) + n
         # Per element pair: its block's slot, doubled, plus 1 when corner b has the lower node
         # (the element then adds the transpose of its (a, b) block).
-        self.pair_slots = int_field(m, 6)
+        gradients = shape_gradients(fem)
+        with backend.fields_of(self):
+            self.pair_slots = int_field(m, 6)
+            self.upper_rows, self.upper_columns = int_field(len(keys)), int_field(len(keys))
+            self.gradients = ti.Matrix.field(3, 4, real, m)
+            self.upper = ti.Matrix.field(3, 3, real, len(keys))
+            self.diagonal = ti.Matrix.field(3, 3, real, n)
+            self.product = ti.Vector.field(3, real, n)
         self.pair_slots.from_numpy((2 * slot.reshape(m, 6) + (tets[:, b] < tets[:, a])).astype(np.int32))
-        self.upper_rows, self.upper_columns = int_field(len(keys)), int_field(len(keys))
         self.upper_rows.from_numpy((keys // n).astype(np.int32))
         self.upper_columns.from_numpy((keys % n).astype(np.int32))
-        self.gradients = ti.Matrix.field(3, 4, real, m)
-        self.gradients.from_numpy(shape_gradients(fem))
-        self.upper = ti.Matrix.field(3, 3, real, len(keys))
-        self.diagonal = ti.Matrix.field(3, 3, real, n)
-        self.product = ti.Vector.field(3, real, n)
+        self.gradients.from_numpy(gradients)
         # Bytes a product reads from the matrix: blocks and their row and column ids.
         self.nbytes = len(keys) * (9 * real_bytes(real) + 8) + n * 9 * real_bytes(real)
 

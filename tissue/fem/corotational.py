@@ -156,14 +156,30 @@ class CorotationalFEM:
         X = mesh.points
         Dm = np.stack([X[mesh.tets[:, i]] - X[mesh.tets[:, 0]] for i in (1, 2, 3)], axis=2)
         lam, mu = material.lame
-        self.tets = int_field(m, 4)
-        self.rest = ti.Vector.field(3, real, n)
-        self.Dm_inv = ti.Matrix.field(3, 3, real, m)
-        self.rest_frame = ti.Matrix.field(3, 3, real, m)
-        self.volume = ti.field(real, m)
-        self.lame = ti.Vector.field(2, real, m)
-        self.R = ti.Matrix.field(3, 3, real, m)
-        self.inverted = int_field(())
+        offsets, corners = vertex_incidence(mesh.tets, n)   # vertex -> element corners (gather, diagonal)
+        colours = colour_elements(mesh.tets, n) if accumulation == "colouring" else []
+        with backend.fields_of(self):
+            self.tets = int_field(m, 4)
+            self.rest = ti.Vector.field(3, real, n)
+            self.Dm_inv = ti.Matrix.field(3, 3, real, m)
+            self.rest_frame = ti.Matrix.field(3, 3, real, m)
+            self.volume = ti.field(real, m)
+            self.lame = ti.Vector.field(2, real, m)
+            self.R = ti.Matrix.field(3, 3, real, m)
+            self.inverted = int_field(())
+            self.mass = ti.field(real, n)
+            self.incidence_offsets = int_field(n + 1)
+            self.incidence = int_field(4 * m)
+            # Accumulation structures: only those of the chosen method are allocated.
+            if accumulation == "gather":
+                self.buffer = ti.Vector.field(3, real, 4 * m)
+            else:
+                self.accumulator = ti.Vector.field(3, real, n)
+            if accumulation == "colouring":
+                self.colour_order = int_field(m)
+            self._io_fields = [ti.Vector.field(3, real, n) for _ in range(2)]
+            self._stress_field = ti.Matrix.field(3, 3, real, m)
+
         self.tets.from_numpy(mesh.tets.astype(np.int32))
         self.rest.from_numpy(X)
         self.Dm_inv.from_numpy(np.linalg.inv(Dm))
@@ -171,28 +187,14 @@ class CorotationalFEM:
         self.lame.from_numpy(np.tile([lam, mu], (m, 1)))
         self.R.from_numpy(np.tile(np.eye(3), (m, 1, 1)))
         self._init_rest_frames()
-
-        self.mass = ti.field(real, n)
         lumped = np.zeros(n)
         np.add.at(lumped, mesh.tets.reshape(-1), np.repeat(material.density * mesh.volumes / 4.0, 4))
         self.mass.from_numpy(lumped)
-
-        # The vertex -> element-corner index serves the gather and the diagonal blocks.
-        offsets, corners = vertex_incidence(mesh.tets, n)
-        self.incidence_offsets = int_field(n + 1)
-        self.incidence = int_field(4 * m)
         self.incidence_offsets.from_numpy(offsets)
         self.incidence.from_numpy(corners)
-        # Accumulation structures: only those of the chosen method are allocated.
-        if accumulation == "gather":
-            self.buffer = ti.Vector.field(3, real, 4 * m)
-        else:
-            self.accumulator = ti.Vector.field(3, real, n)
         if accumulation == "colouring":
-            colours = colour_elements(mesh.tets, n)
             self.n_colours = len(colours)
             self.colour_offsets = [0] + [int(k) for k in np.cumsum([len(c) for c in colours])]
-            self.colour_order = int_field(m)
             self.colour_order.from_numpy(np.concatenate(colours))
 
     @ti.kernel
@@ -365,9 +367,7 @@ class CorotationalFEM:
         """One of two nodal fields kept for the standalone launches, filled with `values`.
 
         Reused from call to call: a new field per call would be a new template argument, so every
-        call would compile its kernels again (and the fields would never be freed)."""
-        if not hasattr(self, "_io_fields"):
-            self._io_fields = [ti.Vector.field(3, self.R.dtype, self.n_nodes) for _ in range(2)]
+        call would compile its kernels again."""
         f = self._io_fields[slot]
         f.from_numpy(np.asarray(values, dtype=np.float64 if self.R.dtype == ti.f64 else np.float32))
         return f
@@ -407,7 +407,5 @@ class CorotationalFEM:
 
     def element_stress_numpy(self, positions: np.ndarray) -> np.ndarray:
         """Co-rotational stress R σ Rᵀ of each element (m, 3, 3) at the given positions."""
-        if not hasattr(self, "_stress_field"):
-            self._stress_field = ti.Matrix.field(3, 3, self.R.dtype, self.n_elements)
         self._stress_kernel(self._vector_field(positions), self._stress_field)
         return self._stress_field.to_numpy()

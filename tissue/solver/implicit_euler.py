@@ -114,21 +114,22 @@ class ImplicitEuler:
         self._warned_inversion = False
         n, real = fem.n_nodes, be.real
 
-        self.x = ti.Vector.field(3, real, n)
-        self.v = ti.Vector.field(3, real, n)
-        self.dv = ti.Vector.field(3, real, n)
-        self.r = ti.Vector.field(3, real, n)
-        self.z = ti.Vector.field(3, real, n)
-        self.p = ti.Vector.field(3, real, n)
-        self.q = ti.Vector.field(3, real, n)
-        self.external = ti.Vector.field(3, real, n)   # applied nodal forces (N), zero unless set
-        self.fixed = int_field(n)
-        self.scalars = ti.field(real, 12)
         self.block = 1024 if be.arch == "cpu" else 32
         self.n_blocks = (n + self.block - 1) // self.block
-        self.partial = ti.field(real, (2, self.n_blocks))
-        if cg.preconditioner != "none":
-            self.block_inverse = ti.Matrix.field(3, 3, real, n)
+        with backend.fields_of(self):
+            self.x = ti.Vector.field(3, real, n)
+            self.v = ti.Vector.field(3, real, n)
+            self.dv = ti.Vector.field(3, real, n)
+            self.r = ti.Vector.field(3, real, n)
+            self.z = ti.Vector.field(3, real, n)
+            self.p = ti.Vector.field(3, real, n)
+            self.q = ti.Vector.field(3, real, n)
+            self.external = ti.Vector.field(3, real, n)   # applied nodal forces (N), zero unless set
+            self.fixed = int_field(n)
+            self.scalars = ti.field(real, 12)
+            self.partial = ti.field(real, (2, self.n_blocks))
+            if cg.preconditioner != "none":
+                self.block_inverse = ti.Matrix.field(3, 3, real, n)
         if cg.preconditioner == "multigrid":
             # By default the dense coarse product, (3 · 2.5 √n)² ≈ 56 n multiply-adds, stays under
             # the ~135 n of a product with the fine matrix.

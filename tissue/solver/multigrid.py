@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import taichi as ti
 
+from .. import backend
 from ..fem.corotational import int_field, nodal_rotation
 from ..mesh import box
 from ..mesh.embedding import EmbeddedSurface
@@ -97,21 +98,23 @@ class Multigrid:
         self.theta, self.steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(self.A0), degree)
 
         nc = self.n_coarse
-        self.nodes = int_field(n, 4)
-        self.weights = ti.Vector.field(4, real, n)
         # Coarse node -> its (4 fine node + corner) entries of nonzero weight, for the restriction.
         entries = np.flatnonzero(weights.ravel())
         entries = entries[np.argsort(coarse.ravel()[entries], kind="stable")]
         offsets = np.zeros(nc + 1, dtype=np.int32)
         np.cumsum(np.bincount(coarse.ravel()[entries], minlength=nc), out=offsets[1:])
-        self.fine_offsets = int_field(nc + 1)
-        self.fine_entries = int_field(len(entries))
-        self.coarse_inverse = ti.Matrix.field(3, 3, real, (nc, nc))
-        self.R = ti.Matrix.field(3, 3, real, n)                  # nodal rotations
-        self.res = ti.Vector.field(3, real, n)
-        self.d = ti.Vector.field(3, real, n)
-        self.rc = ti.Vector.field(3, real, nc)
-        self.ec = ti.Vector.field(3, real, nc)
+        with backend.fields_of(self):
+            self.nodes = int_field(n, 4)
+            self.weights = ti.Vector.field(4, real, n)
+            self.fine_offsets = int_field(nc + 1)
+            self.fine_entries = int_field(len(entries))
+            self.coarse_inverse = ti.Matrix.field(3, 3, real, (nc, nc))
+            self.R = ti.Matrix.field(3, 3, real, n)                  # nodal rotations
+            self.res = ti.Vector.field(3, real, n)
+            self.d = ti.Vector.field(3, real, n)
+            self.rc = ti.Vector.field(3, real, nc)
+            self.ec = ti.Vector.field(3, real, nc)
+            self._io = [ti.Vector.field(3, real, n) for _ in range(2)] + [ti.field(real, 1)]
         self.nodes.from_numpy(coarse.astype(np.int32))
         self.fine_offsets.from_numpy(offsets)
         self.fine_entries.from_numpy(entries.astype(np.int32))
@@ -213,9 +216,6 @@ class Multigrid:
 
     def apply_numpy(self, r: np.ndarray) -> np.ndarray:
         """B r for residuals r (n, 3), with the matrix and rotations of the solver's last step."""
-        if not hasattr(self, "_io"):
-            real = self.R.dtype
-            self._io = [ti.Vector.field(3, real, self.n_nodes) for _ in range(2)] + [ti.field(real, 1)]
         src, dst, flags = self._io
         src.from_numpy(np.asarray(r, dtype=self._np))
         self._apply_kernel(src, dst, flags)
