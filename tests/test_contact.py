@@ -439,13 +439,14 @@ def reset(solver):
     return solver
 
 
-@pytest.mark.parametrize("compliance, weight_error", [("exact", 1e-6), ("warped", 2e-3)])
+@pytest.mark.parametrize("compliance, weight_error", [("exact", 1e-6), ("warped", 5e-4)])
 def test_signorini_block_resting_on_plane(damped_block, compliance, weight_error):
     """A soft block (E 10 kPa, 10×10×5 cm) settles on a plane under gravity. Checked every step: no
     penetration beyond the solver tolerance (measured ≤ 1e-9 m), λ_n ≥ 0, complementarity
-    λ_n δ_n ≈ 0. At rest the normal reactions carry the weight: measured error 1e-7 (exact) and
-    4.6e-4 (warped: nodal rotations of the bulging block break the exact momentum balance
-    1ᵀ A R A₀⁻¹ Rᵀ ≠ 1ᵀ)."""
+    λ_n δ_n ≈ 0. At rest the normal reactions carry the weight: measured error 7e-9 (exact) and
+    5.8e-5 (warped: the translation is applied unwarped, but the deforming part R Q Rᵀ carries a
+    little momentum where the bulging block's nodal rotations differ; 4.6e-4 while the warping
+    still turned the translation)."""
     solver = reset(damped_block)
     stage = on_plane(solver, friction=0.5, compliance=compliance, tolerance=1e-10)
     weight = solver.fem.mass.to_numpy().sum() * G
@@ -514,7 +515,8 @@ def test_coulomb_block_sticks_when_tan_theta_below_mu(incline):
 def test_coulomb_block_slides_with_g_sin_minus_mu_cos(incline):
     """tan θ = 0.70 > μ = 0.5: the block slides with a = g (sin θ - μ cos θ) = 1.609 m/s².
     Measured from a quadratic fit of the centre of mass over 0.2-0.6 s (implicit Euler adds only a
-    linear term, h a t / 2, which the fit absorbs): relative error 5e-4 (dt 0.01 s)."""
+    linear term, h a t / 2, which the fit absorbs): relative error 2.1e-5 (dt 0.01 s; 5.0e-4 while
+    the warping still turned the block's translation)."""
     mu = 0.5
     t, com, _, _ = _run_incline(incline, mu, 60)
     keep = t > 0.2
@@ -522,6 +524,30 @@ def test_coulomb_block_slides_with_g_sin_minus_mu_cos(incline):
     expected = G * (np.sin(np.radians(THETA)) - mu * np.cos(np.radians(THETA)))
     print(f"incline: a = {a:.5f}, expected {expected:.5f}, relative error {(a - expected) / expected:.2e}")
     assert abs(a - expected) < 5e-3 * expected
+
+
+@pytest.mark.parametrize("rotation", ["polar", "large"])
+def test_warped_compliance_slides_a_free_block_like_the_exact_one(backend, rotation):
+    """Reference: the exact compliance (sparse LU of this step's matrix). The block slides down the
+    35° incline (μ = 0.5) for 0.4 s; warped and exact centres of mass agree to 20 µm of the 13.2 cm
+    slid (measured 7.2 µm with "polar", 4.6 µm with "large": what is left is the rotation part of
+    the warping). Before the translation was kept out of the warping (compliance.py) the nodal
+    rotations of the sheared base bent it: 325 µm with "polar", 62 µm with "large"."""
+    theta = np.radians(THETA)
+    com = {}
+    for compliance in ("exact", "warped"):
+        solver = make_solver(block(), young=1e5, dt=0.01, rotation=rotation, rayleigh_stiffness=0.01,
+                             gravity=(G * np.sin(theta), 0.0, -G * np.cos(theta)))
+        stage = on_plane(solver, friction=0.5, compliance=compliance, tolerance=1e-12, max_iterations=1000)
+        m = solver.fem.mass.to_numpy()
+        for _ in range(40):
+            solver.step()
+            stage.step()
+        com[compliance] = m @ solver.positions() / m.sum()
+    slid = com["exact"][0]
+    print(f"{rotation}: slid {slid:.4f} m, warped - exact {np.linalg.norm(com['warped'] - com['exact']):.2e} m")
+    assert slid > 0.05
+    assert np.linalg.norm(com["warped"] - com["exact"]) < 2e-5
 
 
 def hemisphere(radius, cells, grading=2.0):
@@ -728,7 +754,7 @@ def test_contact_settings_and_stage_validation(damped_block, cantilever):
 def test_incline_scene_slides_at_the_coulomb_rate(backend):
     """scenes/incline.py through the Simulation: a contact stage after the free motion, and the
     block's centre of mass accelerates down the 25° slope at g (sin θ - μ cos θ) = 0.5895 m/s²
-    (measured 0.5898)."""
+    (measured 0.5899, "polar" rotations, warped compliance)."""
     from scenes.incline import ANGLE, Incline
     from tissue.scene import Simulation
 

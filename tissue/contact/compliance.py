@@ -23,6 +23,14 @@ elements' rotations, i.e. their orthonormalised average) it is the paper's appro
 
     W ≈ h (H R) A₀⁻¹ (H R)ᵀ,     x⁺ ≈ x_free + R h A₀⁻¹ (H R)ᵀ λ.
 
+For a free body (no fixed node) only the deforming part is warped: A₀⁻¹ = Q + T Tᵀ / (c m) (T the
+uniform translations, c = 1 + h α_M, m the mass), and the translation, which rotating cannot
+change for a rigid turn but bends when nodal rotations differ, is applied as it is:
+
+    W ≈ h ((H R) Q (H R)ᵀ + (H T)(H T)ᵀ / (c m)),   x⁺ ≈ x_free + h (R Q (H R)ᵀ λ + T (H T)ᵀ λ / (c m)),
+
+so the total impulse moves the centre of mass exactly as the unwarped operator would.
+
 A₀⁻¹ is computed once, dense, from the assembled sparse A₀ (tissue.solver.reference) with the
 body's dt, damping and fixed nodes (their rows and columns are zero: fixed nodes do not move). The
 same approximate operator builds W and applies the correction, so δ = δ_free + W λ holds exactly
@@ -77,14 +85,26 @@ def _jds_offsets(n_active, k_max, nnz):
     return o_count, o_ptr, o_node, o_local, o_local + nnz
 
 
+@ti.func
+def _row_translation(jds: ti.template(), value: ti.template(), o_count, o_ptr, i):
+    """(H T)ᵢ: the sum of block row i's blocks, its (unrotated) response to a uniform translation."""
+    G = ti.Matrix.zero(float, 3, 3)
+    for l in range(jds[o_count + i]):
+        e = jds[o_ptr + l] + i
+        for a, b in ti.static(ti.ndrange(3, 3)):
+            G[a, b] += value[e, a, b]
+    return G
+
+
 @ti.kernel
 def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), R: ti.template(),
               C0: ti.template(), hr: ti.template(), U: ti.template(), jds: ti.types.ndarray(),
               value: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
-              n_touched: ti.i32, h: float, tol: float, add: ti.template(), serial: ti.template()):
+              n_touched: ti.i32, h: float, inverse_mass: float, tol: float, add: ti.template(),
+              serial: ti.template()):
     """One launch, four loops (parallel; on one thread for small bodies on the CPU): the nodal
-    rotations; kernel 1, Hr = H R (a 3×3 block each); U = A₀⁻¹ Hrᵀ on the touched dofs only;
-    kernel 2, W += h Hr U (when `add`)."""
+    rotations; kernel 1, Hr = H R (a 3×3 block each); U = Q Hrᵀ on the touched dofs only;
+    kernel 2, W += h (Hr U + (H T)(H T)ᵀ / (c m)) (when `add`)."""
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
     ti.loop_config(serialize=serial)
     for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
@@ -117,6 +137,9 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
                     e = jds[o_ptr + l] + j
                     a = i * d + 3 * jds[o_local + e]
                     B += ti.Matrix.cols([U[a], U[a + 1], U[a + 2]]) @ hr[e].transpose()
+                if inverse_mass != 0.0:
+                    B += inverse_mass * _row_translation(jds, value, o_count, o_ptr, i) @ \
+                        _row_translation(jds, value, o_count, o_ptr, j).transpose()
                 ri, rj = 3 * jds[i], 3 * jds[j]
                 for p, q in ti.static(ti.ndrange(3, 3)):
                     W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
@@ -127,11 +150,14 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
 
 @ti.kernel
 def _correct(R: ti.template(), C0: ti.template(), hr: ti.template(), r0: ti.template(),
-             jds: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.template(), v: ti.template(),
-             n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, serial: ti.template()):
-    """r₀ = (H R)ᵀ λ on the touched dofs (serial: a fixed summation order), then per node
-    dx = R h A₀⁻¹ r₀ (a gather over the touched columns), x += dx, v += dx / h."""
+             jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.template(),
+             v: ti.template(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float,
+             inverse_mass: float, serial: ti.template()):
+    """r₀ = (H R)ᵀ λ on the touched dofs and the total impulse p = (H T)ᵀ λ (serial: a fixed
+    summation order; p in r₀'s last slot), then per node dx = h (R Q r₀ + p / (c m)) (a gather over
+    the touched columns), x += dx, v += dx / h."""
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+    last = r0.shape[0] - 1
     ti.loop_config(serialize=serial)
     for t in range(n_touched):
         r0[t] = ti.Vector([0.0, 0.0, 0.0])
@@ -139,6 +165,9 @@ def _correct(R: ti.template(), C0: ti.template(), hr: ti.template(), r0: ti.temp
     for i in range(n_active):
         ri = 3 * jds[i]
         li = ti.Vector([lam[ri], lam[ri + 1], lam[ri + 2]])
+        if i == 0:
+            r0[last] = ti.Vector([0.0, 0.0, 0.0])
+        r0[last] += _row_translation(jds, value, o_count, o_ptr, i).transpose() @ li
         for l in range(jds[o_count + i]):
             e = jds[o_ptr + l] + i
             a = jds[o_local + e]
@@ -152,7 +181,7 @@ def _correct(R: ti.template(), C0: ti.template(), hr: ti.template(), r0: ti.temp
             g = r0[t]
             for c in ti.static(range(3)):
                 s[c] += C0[row, 3 * k + c] * g[0] + C0[row + 1, 3 * k + c] * g[1] + C0[row + 2, 3 * k + c] * g[2]
-        dx = h * (R[k] @ s)
+        dx = h * (R[k] @ s + inverse_mass * r0[last])
         x[k] = x[k] + dx
         v[k] = v[k] + dx / h
 
@@ -172,11 +201,19 @@ class WarpedCompliance:
         self._np = np.float64 if be.real == ti.f64 else np.float32
         C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
                              rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
-        self.C0_host = 0.5 * (C0 + C0.T)          # symmetric to round-off; the kernels rely on it
+        # A free body's rigid translation is not warped: A₀⁻¹ = Q + S with S = T Tᵀ / (c m) (T the
+        # uniform translations, c = 1 + h α_M, m the mass; K T = 0, so A₀ T = c M T), and Q moves
+        # no momentum (Tᵀ M Q = 0). Rotating S too by nodal rotations that differ from node to node
+        # would bend the translation: the block on a slope slid 1.4 % too slowly with "polar".
+        n = fem.n_nodes
+        free = len(solver.fixed_nodes) == 0
+        self.inverse_mass = 1.0 / ((1.0 + solver.dt * solver.rayleigh_mass) * fem.mass.to_numpy().sum()) \
+            if free else 0.0
+        self.C0_host = 0.5 * (C0 + C0.T) - self.inverse_mass * np.kron(np.ones((n, n)), np.eye(3))   # Q
         with backend.fields_of(self):
             self.C0 = ti.field(dtype=self.real, shape=self.C0_host.shape)
-            self.R = ti.Matrix.field(3, 3, self.real, fem.n_nodes)
-            self.r0 = ti.Vector.field(3, self.real, fem.n_nodes)
+            self.R = ti.Matrix.field(3, 3, self.real, n)
+            self.r0 = ti.Vector.field(3, self.real, n + 1)     # + the total impulse
         self.C0.from_numpy(self.C0_host.astype(self._np))
         self._tol = fem.rotation_tolerance
         self.hr = self.U = None
@@ -213,7 +250,7 @@ class WarpedCompliance:
         fem, jds = self.solver.fem, self.jds
         packed, *sizes = self._args()
         _delassus(fem.R, fem.incidence_offsets, fem.incidence, self.R, self.C0, self.hr, self.U, packed,
-                  jds.value, W, *sizes, self.solver.dt, self._tol, add, self.serial)
+                  jds.value, W, *sizes, self.solver.dt, self.inverse_mass, self._tol, add, self.serial)
         self._ready = True
 
     def add_to(self, W: np.ndarray) -> None:
@@ -229,8 +266,8 @@ class WarpedCompliance:
         if not self._ready:
             self._run(np.zeros((3, 3), self._np), False)
         packed, *sizes = self._args()
-        _correct(self.R, self.C0, self.hr, self.r0, packed, np.ascontiguousarray(lam, dtype=self._np),
-                 self.solver.x, self.solver.v, *sizes, self.solver.dt, self.serial)
+        _correct(self.R, self.C0, self.hr, self.r0, packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
+                 self.solver.x, self.solver.v, *sizes, self.solver.dt, self.inverse_mass, self.serial)
 
 
 class ExactCompliance:
