@@ -98,13 +98,13 @@ def _row_translation(jds: ti.template(), value: ti.template(), o_count, o_ptr, i
 
 @ti.kernel
 def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), R: ti.template(),
-              C0: ti.template(), hr: ti.template(), U: ti.template(), jds: ti.types.ndarray(),
-              value: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
-              n_touched: ti.i32, h: float, inverse_mass: float, tol: float, add: ti.template(),
-              serial: ti.template()):
-    """One launch, four loops (parallel; on one thread for small bodies on the CPU): the nodal
-    rotations; kernel 1, Hr = H R (a 3×3 block each); U = Q Hrᵀ on the touched dofs only;
-    kernel 2, W += h (Hr U + (H T)(H T)ᵀ / (c m)) (when `add`)."""
+              C0: ti.template(), hr: ti.template(), U: ti.template(), ht: ti.template(),
+              jds: ti.types.ndarray(), value: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32,
+              k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
+              add: ti.template(), serial: ti.template()):
+    """One launch (parallel loops; on one thread for small bodies on the CPU): the nodal
+    rotations; kernel 1, Hr = H R (a 3×3 block each); U = Q Hrᵀ on the touched dofs only; when
+    `add`, the rows' translations H T and kernel 2, W += h (Hr U + (H T)(H T)ᵀ / (c m))."""
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
     ti.loop_config(serialize=serial)
     for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
@@ -128,6 +128,9 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
             s += hr[e] @ ti.Vector([C0[b, col], C0[b + 1, col], C0[b + 2, col]])
         U[i * d + m] = s
     if ti.static(add):
+        ti.loop_config(serialize=serial)
+        for i in range(n_active):
+            ht[i] = _row_translation(jds, value, o_count, o_ptr, i)
         # Kernel 2: the 3×3 block (i, j) of W is h U(i, j's dofs) Hr(j, ·)ᵀ; upper triangle, mirrored.
         ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n_active, n_active):
@@ -138,8 +141,7 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
                     a = i * d + 3 * jds[o_local + e]
                     B += ti.Matrix.cols([U[a], U[a + 1], U[a + 2]]) @ hr[e].transpose()
                 if inverse_mass != 0.0:
-                    B += inverse_mass * _row_translation(jds, value, o_count, o_ptr, i) @ \
-                        _row_translation(jds, value, o_count, o_ptr, j).transpose()
+                    B += inverse_mass * ht[i] @ ht[j].transpose()
                 ri, rj = 3 * jds[i], 3 * jds[j]
                 for p, q in ti.static(ti.ndrange(3, 3)):
                     W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
@@ -216,7 +218,7 @@ class WarpedCompliance:
             self.r0 = ti.Vector.field(3, self.real, n + 1)     # + the total impulse
         self.C0.from_numpy(self.C0_host.astype(self._np))
         self._tol = fem.rotation_tolerance
-        self.hr = self.U = None
+        self.hr = self.U = self.ht = None
         self.jds, self._ready = None, False
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
         # costs more than it saves at a few hundred rows on 2 cores); parallel above.
@@ -241,6 +243,8 @@ class WarpedCompliance:
                 self.hr = ti.Matrix.field(3, 3, self.real, max(1024, 2 * jds.nnz))
             if self.U is None or self.U.shape[0] < jds.n_active * d:
                 self.U = ti.Vector.field(3, self.real, max(1 << 16, 2 * jds.n_active * d))
+            if self.ht is None or self.ht.shape[0] < jds.n_active:
+                self.ht = ti.Matrix.field(3, 3, self.real, max(256, 2 * jds.n_active))   # (H T) per row
 
     def _args(self):
         jds = self.jds
@@ -249,8 +253,8 @@ class WarpedCompliance:
     def _run(self, W, add: bool) -> None:
         fem, jds = self.solver.fem, self.jds
         packed, *sizes = self._args()
-        _delassus(fem.R, fem.incidence_offsets, fem.incidence, self.R, self.C0, self.hr, self.U, packed,
-                  jds.value, W, *sizes, self.solver.dt, self.inverse_mass, self._tol, add, self.serial)
+        _delassus(fem.R, fem.incidence_offsets, fem.incidence, self.R, self.C0, self.hr, self.U, self.ht,
+                  packed, jds.value, W, *sizes, self.solver.dt, self.inverse_mass, self._tol, add, self.serial)
         self._ready = True
 
     def add_to(self, W: np.ndarray) -> None:
