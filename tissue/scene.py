@@ -435,8 +435,7 @@ class Body:
 
     def element_stress(self) -> np.ndarray:
         """Co-rotational Cauchy-like stress R σ Rᵀ of each element (m, 3, 3), at the current positions."""
-        self.fem._stress_kernel(self.solver.x, self.fem._stress_field)
-        return self.fem._stress_field.to_numpy().astype(np.float64)
+        return self.fem.element_stress_numpy(self.solver.x)
 
     def von_mises(self) -> np.ndarray:
         """Von Mises equivalent stress of each element (Pa)."""

@@ -178,7 +178,6 @@ class CorotationalFEM:
             if accumulation == "colouring":
                 self.colour_order = int_field(m)
             self._io_fields = [ti.Vector.field(3, real, n) for _ in range(2)]
-            self._stress_field = ti.Matrix.field(3, 3, real, m)
 
         self.tets.from_numpy(mesh.tets.astype(np.int32))
         self.rest.from_numpy(X)
@@ -405,7 +404,12 @@ class CorotationalFEM:
             sigma = 2.0 * mu * eps + lam * eps.trace() * ti.Matrix.identity(float, 3)
             out[e] = R @ sigma @ R.transpose()
 
-    def element_stress_numpy(self, positions: np.ndarray) -> np.ndarray:
-        """Co-rotational stress R σ Rᵀ of each element (m, 3, 3) at the given positions."""
-        self._stress_kernel(self._vector_field(positions), self._stress_field)
-        return self._stress_field.to_numpy()
+    def element_stress_numpy(self, positions) -> np.ndarray:
+        """Co-rotational stress R σ Rᵀ of each element (m, 3, 3) at the given positions: an (n, 3)
+        array, or a nodal Taichi field such as a solver's `x` (read in place)."""
+        if not hasattr(self, "_stress_field"):   # allocated on first use, so the kernel compiles once
+            with backend.fields_of(self):
+                self._stress_field = ti.Matrix.field(3, 3, self.R.dtype, self.n_elements)
+        x = self._vector_field(positions) if isinstance(positions, np.ndarray) else positions
+        self._stress_kernel(x, self._stress_field)
+        return self._stress_field.to_numpy().astype(np.float64)
