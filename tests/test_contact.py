@@ -682,6 +682,40 @@ def test_attachment_holds_node_and_stacked_blocks_carry_both_weights(damped_bloc
     assert gaps.min() > -1e-7      # the nonlinear gaps (soft–soft is only linearised in the step)
 
 
+def test_stage_factors_equal_the_assembled_warped_W(damped_block):
+    """The stage keeps W by its factors (FactoredDelassus: per body H R on the touched nodes and
+    the rest compliance there, the free bodies' translation apart); formed, they are the W that the
+    warping kernels assemble (the paper's kernel 2) for the same rows: two free blocks stacked on a
+    plane, so with soft–soft rows (blocks on both bodies) and both bodies' translation segments."""
+    from tissue.contact import FactoredDelassus
+    from tissue.contact.constraints import JaggedDiagonal
+    from tissue.contact.obstacles import Plane, RigidObstacle
+    from tissue.contact.pipeline import ContactSettings, ContactStage
+
+    lower = reset(damped_block)
+    upper = make_solver(block((0.05, 0.05, 0.03), (2, 2, 2), z0=0.05), dt=0.01, rayleigh_mass=1.0,
+                        rayleigh_stiffness=0.01)
+    stage = ContactStage([lower, upper], [RigidObstacle(Plane())],
+                         ContactSettings(friction=0.3, contact_distance=2e-3, tolerance=1e-10))
+    for _ in range(5):
+        lower.step()
+        upper.step()
+        r = stage.step()
+    assert isinstance(r.delassus, FactoredDelassus) and r.contacts.soft.any()
+    W = np.zeros((r.rows.n_rows, r.rows.n_rows))
+    for b in (0, 1):
+        jds = JaggedDiagonal(r.rows, b)
+        assert np.diff(r.delassus.y_offset)[b] == 3 * len(jds.touched) + 3     # + the translation
+        stage.compliance[b].prepare(jds)
+        stage.compliance[b].add_to(W)
+    assert np.linalg.norm(r.W - W) <= 1e-12 * np.linalg.norm(W)
+    n = r.rows.n_contacts
+    np.testing.assert_allclose(r.delassus.diagonal, W.reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :],
+                               atol=1e-12 * np.abs(W).max())
+    # The gaps the stage reports are those of the formed W.
+    np.testing.assert_allclose(r.gaps, r.rows.q + W @ r.impulses, atol=1e-12)
+
+
 @pytest.fixture(scope="module")
 def coarse_block(backend):
     """10 × 10 × 5 cm in 3 × 3 × 1 cells (3.3 cm apart), clamped at its base, no gravity."""

@@ -288,6 +288,58 @@ def test_rigid_bodies_sparse_csr_matches_dense(solve, method):
     assert ic.iterations == info.iterations and np.array_equal(rc, r)
 
 
+def two_body_factored_problem(nc, nnodes, rng, h=0.04):
+    """Contacts of soft body 0 against rigid ground or a triangle of soft body 1, as the contact
+    stage poses them with compliance warping: W = Σ_b H_b C_b H_bᵀ (dense here, from the two bodies'
+    compliances), and the same W as a FactoredDelassus (C_b restricted to the nodes H_b touches)."""
+    from tissue.contact import FactoredDelassus
+
+    _, _, mu = soft_body_problem(nc, nnodes, rng, h)
+    C = []
+    for _ in range(2):                                   # two bodies' compliances, as soft_body_problem's
+        A = rng.standard_normal((3 * nnodes, 3 * nnodes))
+        C.append(h * np.linalg.inv(np.eye(3 * nnodes) + 0.02 * A @ A.T))
+    H = [np.zeros((3 * nc, 3 * nnodes)) for _ in range(2)]
+    blocks = []                                          # (contact, body, node, 3×3 block)
+    for c in range(nc):
+        F = frame(rng.standard_normal(3))
+        for body, sign in ((0, 1.0), (1, -1.0)) if c % 3 == 0 else ((0, 1.0),):
+            for node, w in zip(rng.choice(nnodes, 3, replace=False), rng.dirichlet(np.ones(3))):
+                H[body][3 * c:3 * c + 3, 3 * node:3 * node + 3] += sign * w * F
+                blocks.append((c, body, node, sign * w * F))
+    W = sum(Hb @ Cb @ Hb.T for Hb, Cb in zip(H, C))
+    touched = [np.unique([n for _, b, n, _ in blocks if b == body]) for body in range(2)]
+    d = np.array([3 * len(t) for t in touched])
+    y_offset, q_offset = np.r_[0, np.cumsum(d)], np.r_[0, np.cumsum(d ** 2)][:-1]
+    dofs = [(3 * t[:, None] + np.arange(3)).ravel() for t in touched]
+    Q = np.concatenate([Cb[np.ix_(k, k)].ravel() for Cb, k in zip(C, dofs)])
+    col = [y_offset[b] + 3 * int(np.searchsorted(touched[b], n)) for _, b, n, _ in blocks]
+    ptr = np.r_[0, np.cumsum(np.bincount([c for c, *_ in blocks], minlength=nc))]
+    diagonal = W.reshape(nc, 3, nc, 3)[np.arange(nc), :, np.arange(nc), :].copy()
+    F = FactoredDelassus(ptr, np.array(col), np.array([b for _, b, _, _ in blocks]),
+                         np.array([B for *_, B in blocks]), Q, y_offset, q_offset, diagonal)
+    q = np.column_stack([rng.uniform(-1, 0.3, nc), 0.5 * rng.standard_normal((nc, 2))]).ravel()
+    scale = np.mean(np.diagonal(W))
+    return W / scale, F.scaled(1 / scale), q, mu
+
+
+@pytest.mark.parametrize("method", ["gauss_seidel", "jacobi"])
+def test_factored_delassus_matches_dense(solve, method):
+    """The factored layout (W = Σ P Q Pᵀ, never formed) against the dense W built here from the
+    same bodies: the operator itself, and the solution of the same problem by each layout."""
+    W, F, q, mu = two_body_factored_problem(90, 60, np.random.default_rng(4))
+    assert np.linalg.norm(F.toarray() - W) <= 1e-12 * np.linalg.norm(W)
+    r = np.random.default_rng(5).standard_normal(len(q))
+    np.testing.assert_allclose(F @ r, W @ r, atol=1e-12 * np.abs(W @ r).max())
+    tol, cap = (1e-8, 5000) if method == "gauss_seidel" else (1e-5, 50000)
+    rf, info = solve(F, q, mu, tol=tol, max_iterations=cap, method=method)
+    rd, idn = solve(W, q, mu, tol=tol, max_iterations=cap, method=method)
+    _report(f"{method} factored", info, len(mu))
+    assert info.converged and natural_map(W, q, mu, rf) <= tol
+    assert abs(idn.iterations - info.iterations) <= 2     # same algorithm, rounding aside
+    np.testing.assert_allclose(rf, rd, atol=10 * tol * (1 + np.linalg.norm(q)))
+
+
 def test_jacobi_safeguard_recovers_from_too_large_omega(solve):
     from tissue.contact import FrictionalContactSolver
     W, q, mu = rigid_bodies_problem(3, 30, np.random.default_rng(0))   # strongly coupled contacts

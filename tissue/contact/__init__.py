@@ -12,12 +12,12 @@ exact), the frictional contact solver, and the stage that ties them after the fr
 
 from .constraints import Attachment
 from .detection import Contacts, Detector
-from .frictional_contact import (ContactInfo, FrictionalContactSolver, natural_map_residual,
+from .frictional_contact import (ContactInfo, FactoredDelassus, FrictionalContactSolver, natural_map_residual,
                                  solve_frictional_contact)
 from .layer import Contact, ContactLayer, Obstacle
 from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh
 from .pipeline import ContactBody, ContactResult, ContactSettings, ContactStage
 
 __all__ = ["Attachment", "Box", "Capsule", "Contact", "ContactBody", "ContactInfo", "ContactLayer", "ContactResult",
-           "ContactSettings", "ContactStage", "Contacts", "Detector", "FrictionalContactSolver", "Obstacle", "Plane",
+           "ContactSettings", "ContactStage", "Contacts", "Detector", "FactoredDelassus", "FrictionalContactSolver", "Obstacle", "Plane",
            "RigidObstacle", "Sphere", "TriangleMesh", "natural_map_residual", "solve_frictional_contact"]

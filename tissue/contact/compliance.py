@@ -96,15 +96,23 @@ def _row_translation(jds: ti.template(), value: ti.template(), o_count, o_ptr, i
     return G
 
 
+ROTATE, ASSEMBLE, FACTOR = 0, 1, 2     # what _delassus computes besides the nodal rotations and Hr
+
+
 @ti.kernel
 def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), R: ti.template(),
               C0: ti.template(), hr: ti.template(), U: ti.template(), ht: ti.template(),
-              jds: ti.types.ndarray(), value: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32,
-              k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
-              add: ti.template(), serial: ti.template()):
+              jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(), out: ti.types.ndarray(),
+              P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
+              n_touched: ti.i32, h: float, inverse_mass: float, tol: float, mode: ti.template(),
+              serial: ti.template()):
     """One launch (parallel loops; on one thread for small bodies on the CPU): the nodal
-    rotations; kernel 1, Hr = H R (a 3×3 block each); U = Q Hrᵀ on the touched dofs only; when
-    `add`, the rows' translations H T and kernel 2, W += h (Hr U + (H T)(H T)ᵀ / (c m))."""
+    rotations and kernel 1, Hr = H R (a 3×3 block each); then by `mode`
+      ASSEMBLE  Q among the touched dofs (Qt), U = Q Hrᵀ there, the rows' translations H T and
+                kernel 2: out (W) += h (Hr U + (H T)(H T)ᵀ / (c m));
+      FACTOR    the factors of W (tissue.contact.FactoredDelassus): Hr and H T into P at `pos`,
+                Q among the touched dofs into Qt (with the translation's block for a free body),
+                and W's diagonal blocks: out[block row] += h (Hr Q Hrᵀ + (H T)(H T)ᵀ / (c m))."""
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
     ti.loop_config(serialize=serial)
     for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
@@ -116,21 +124,35 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
             V[a, b] = value[e, a, b]
         hr[e] = V @ R[jds[o_node + e]]
     d = 3 * n_touched
-    # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) A₀⁻¹(block's dofs, m). A₀⁻¹ is
-    # symmetric and m runs fastest, so neighbouring threads read neighbouring entries of a row.
-    ti.loop_config(serialize=serial)
-    for i, m in ti.ndrange(n_active, d):
-        col = 3 * jds[o_touched + m // 3] + m % 3
-        s = ti.Vector([0.0, 0.0, 0.0])
-        for l in range(jds[o_count + i]):
-            e = jds[o_ptr + l] + i
-            b = 3 * jds[o_node + e]
-            s += hr[e] @ ti.Vector([C0[b, col], C0[b + 1, col], C0[b + 2, col]])
-        U[i * d + m] = s
-    if ti.static(add):
+    if ti.static(mode != ROTATE):
         ti.loop_config(serialize=serial)
         for i in range(n_active):
             ht[i] = _row_translation(jds, value, o_count, o_ptr, i)
+        # Q among the touched dofs, gathered once (ld × ld, row-major; a free body's factor adds
+        # the translation's three dofs): a compact copy stays in cache where scattered reads of the
+        # whole Q (3n × 3n, 10 MB for the liver) miss it.
+        ld = d
+        if ti.static(mode == FACTOR):
+            ld = d + (3 if inverse_mass != 0.0 else 0)
+        ti.loop_config(serialize=serial)
+        for a, m in ti.ndrange(ld, ld):
+            value_am = 0.0
+            if a < d and m < d:
+                value_am = C0[3 * jds[o_touched + a // 3] + a % 3, 3 * jds[o_touched + m // 3] + m % 3]
+            elif a == m:
+                value_am = inverse_mass
+            Qt[a * ld + m] = value_am
+    if ti.static(mode == ASSEMBLE):
+        # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
+        # fastest, so neighbouring threads read neighbouring entries of a row.
+        ti.loop_config(serialize=serial)
+        for i, m in ti.ndrange(n_active, d):
+            s = ti.Vector([0.0, 0.0, 0.0])
+            for l in range(jds[o_count + i]):
+                e = jds[o_ptr + l] + i
+                b = 3 * jds[o_local + e] * d + m
+                s += hr[e] @ ti.Vector([Qt[b], Qt[b + d], Qt[b + 2 * d]])
+            U[i * d + m] = s
         # Kernel 2: the 3×3 block (i, j) of W is h U(i, j's dofs) Hr(j, ·)ᵀ; upper triangle, mirrored.
         ti.loop_config(serialize=serial)
         for i, j in ti.ndrange(n_active, n_active):
@@ -144,10 +166,35 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
                     B += inverse_mass * ht[i] @ ht[j].transpose()
                 ri, rj = 3 * jds[i], 3 * jds[j]
                 for p, q in ti.static(ti.ndrange(3, 3)):
-                    W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
+                    out[ri + p, rj + q] = out[ri + p, rj + q] + h * B[p, q]
                 if i != j:
                     for p, q in ti.static(ti.ndrange(3, 3)):
-                        W[rj + q, ri + p] = W[rj + q, ri + p] + h * B[p, q]
+                        out[rj + q, ri + p] = out[rj + q, ri + p] + h * B[p, q]
+    if ti.static(mode == FACTOR):
+        ld = d + (3 if inverse_mass != 0.0 else 0)
+        ti.loop_config(serialize=serial)
+        for i in range(n_active):
+            count = jds[o_count + i]
+            B = ti.Matrix.zero(float, 3, 3)
+            for l in range(count):
+                e = jds[o_ptr + l] + i
+                for c in ti.static(ti.ndrange(3, 3)):
+                    P[pos[e], c[0], c[1]] = hr[e][c[0], c[1]]
+                a = 3 * jds[o_local + e]
+                for l2 in range(count):
+                    f = jds[o_ptr + l2] + i
+                    b = 3 * jds[o_local + f]
+                    Qab = ti.Matrix.zero(float, 3, 3)
+                    for p, q in ti.static(ti.ndrange(3, 3)):
+                        Qab[p, q] = Qt[(a + p) * ld + b + q]
+                    B += hr[e] @ Qab @ hr[f].transpose()
+            if inverse_mass != 0.0:
+                for c in ti.static(ti.ndrange(3, 3)):
+                    P[pos[nnz + i], c[0], c[1]] = ht[i][c[0], c[1]]
+                B += inverse_mass * ht[i] @ ht[i].transpose()
+            row = jds[i]
+            for p, q in ti.static(ti.ndrange(3, 3)):
+                out[row, p, q] = out[row, p, q] + h * B[p, q]
 
 
 @ti.kernel
@@ -219,6 +266,8 @@ class WarpedCompliance:
         self.C0.from_numpy(self.C0_host.astype(self._np))
         self._tol = fem.rotation_tolerance
         self.hr = self.U = self.ht = None
+        self._Qt = np.empty(0, self._np)                      # Q among the touched dofs (assembling W)
+        self._none, self._no_pos = np.zeros((1, 3, 3), self._np), np.zeros(1, np.int32)
         self.jds, self._ready = None, False
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
         # costs more than it saves at a few hundred rows on 2 cores); parallel above.
@@ -234,33 +283,57 @@ class WarpedCompliance:
         return self.R.to_numpy().astype(np.float64)
 
     def prepare(self, jds: JaggedDiagonal) -> None:
-        """This step's rows of H (the work is done by `add_to`, or by `correct` without it)."""
+        """This step's rows of H (the work is done by `add_to` or `factor`, or by `correct`
+        without them)."""
         self.jds, self._ready = jds, False
         d = 3 * len(jds.touched)
-        # Scratch fields grow (a new field recompiles the kernels: rare, by doubling).
+        small = [f is None or f.shape[0] < n for f, n in ((self.hr, jds.nnz), (self.U, jds.n_active * d),
+                                                          (self.ht, jds.n_active))]
+        if len(self._Qt) < d * d:
+            self._Qt = np.empty(max(1 << 16, 4 * d * d), self._np)
+        if not any(small):
+            return
+        # Scratch fields grow (a new field recompiles the kernels: rare, by doubling). Entering
+        # fields_of costs ~0.4 ms (it materialises pending fields), so only when one must grow.
         with backend.fields_of(self):
-            if self.hr is None or self.hr.shape[0] < jds.nnz:
+            if small[0]:
                 self.hr = ti.Matrix.field(3, 3, self.real, max(1024, 2 * jds.nnz))
-            if self.U is None or self.U.shape[0] < jds.n_active * d:
+            if small[1]:
                 self.U = ti.Vector.field(3, self.real, max(1 << 16, 2 * jds.n_active * d))
-            if self.ht is None or self.ht.shape[0] < jds.n_active:
+            if small[2]:
                 self.ht = ti.Matrix.field(3, 3, self.real, max(256, 2 * jds.n_active))   # (H T) per row
 
-    def _args(self):
-        jds = self.jds
-        return (jds.packed, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched))
+    @property
+    def free(self) -> bool:
+        """No node held: the rigid translation is kept apart from the warping (see above)."""
+        return self.inverse_mass != 0.0
 
-    def _run(self, W, add: bool) -> None:
+    def factor_size(self) -> int:
+        """The dofs of this body's factor for the prepared rows: 3 per touched node, and 3 for the
+        translation of a free body."""
+        return 3 * len(self.jds.touched) + 3 * self.free
+
+    def _run(self, mode, out, Qt=None, P=None, pos=None) -> None:
         fem, jds = self.solver.fem, self.jds
-        packed, *sizes = self._args()
+        none = self._none
         _delassus(fem.R, fem.incidence_offsets, fem.incidence, self.R, self.C0, self.hr, self.U, self.ht,
-                  packed, jds.value, W, *sizes, self.solver.dt, self.inverse_mass, self._tol, add, self.serial)
+                  jds.packed, jds.value, self._Qt if Qt is None else Qt, out, none if P is None else P,
+                  self._no_pos if pos is None else pos, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz,
+                  len(jds.touched), self.solver.dt, self.inverse_mass, self._tol, mode, self.serial)
         self._ready = True
 
     def add_to(self, W: np.ndarray) -> None:
         """W (n_rows², the backend's float type) += h (H R) A₀⁻¹ (H R)ᵀ."""
         if self.jds.n_active:
-            self._run(W, True)
+            self._run(ASSEMBLE, W)
+
+    def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray) -> None:
+        """This body's factors of W (tissue.contact.FactoredDelassus): P[pos[e]] = (H R) block of
+        JDS entry e (and P[pos[nnz + i]] = (H T) of sorted block row i, free bodies), Q its
+        compliance on the factor's dofs (factor_size()² entries, row-major), and W's diagonal
+        blocks += this body's part."""
+        if self.jds.n_active:
+            self._run(FACTOR, diagonal, Q, P, pos)
 
     def correct(self, lam: np.ndarray) -> None:
         """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's fields."""
@@ -268,10 +341,10 @@ class WarpedCompliance:
         if not jds.n_active:
             return
         if not self._ready:
-            self._run(np.zeros((3, 3), self._np), False)
-        packed, *sizes = self._args()
-        _correct(self.R, self.C0, self.hr, self.r0, packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
-                 self.solver.x, self.solver.v, *sizes, self.solver.dt, self.inverse_mass, self.serial)
+            self._run(ROTATE, self._none)
+        _correct(self.R, self.C0, self.hr, self.r0, jds.packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
+                 self.solver.x, self.solver.v, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched),
+                 self.solver.dt, self.inverse_mass, self.serial)
 
 
 class ExactCompliance:

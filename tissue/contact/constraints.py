@@ -65,14 +65,23 @@ class Attachment:
         return np.asarray(p, dtype=np.float64).reshape(3)
 
 
+# _CROSS[a] @ n = n × e_a (e_a the world axis a)
+_CROSS = np.array([[[0, 0, 0], [0, 0, 1], [0, -1, 0]], [[0, 0, -1], [0, 0, 0], [1, 0, 0]],
+                   [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]], dtype=np.float64)
+
+
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
-    """(k, 3, 3): rows n, t1, t2 (right-handed orthonormal), t1 built from the world axis least
-    aligned with n so it varies smoothly with n."""
-    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    axis = np.eye(3)[np.argmin(np.abs(n), axis=1)]
-    t1 = np.cross(n, axis)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    return np.stack([n, t1, np.cross(n, t1)], axis=1)
+    """(k, 3, 3): rows n, t1, t2 (right-handed orthonormal), t1 = n × the world axis least aligned
+    with n, so it varies smoothly with n. (Written out: np.cross costs more than the rest.)"""
+    n = normals / np.sqrt(np.einsum("ki,ki->k", normals, normals))[:, None]
+    t1 = np.einsum("kij,kj->ki", _CROSS[np.argmin(np.abs(n), axis=1)], n)
+    t1 /= np.sqrt(np.einsum("ki,ki->k", t1, t1))[:, None]
+    frames = np.empty((len(n), 3, 3))
+    frames[:, 0], frames[:, 1] = n, t1
+    for i in range(3):                                  # t2 = n × t1
+        j, k = (i + 1) % 3, (i + 2) % 3
+        frames[:, 2, i] = n[:, j] * t1[:, k] - n[:, k] * t1[:, j]
+    return frames
 
 
 @dataclass

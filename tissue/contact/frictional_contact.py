@@ -41,8 +41,9 @@ Methods:
     every JACOBI_CHECK_EVERY iterations; when it exceeds twice the best seen, or the best has not
     improved for JACOBI_STALL_CHECKS checks, the best iterate is restored and omega halved.
 
-W is held on the device either dense (row-major) or, for a large sparse W, as 3x3 blocks in
-block-CSR. Taichi ndarrays are used rather than fields so that problems of any size reuse the same
+W is held on the device dense (row-major), as 3x3 blocks in block-CSR (a large sparse W), or as
+its factors W = scale Σ P Q Pᵀ (`FactoredDelassus`, the form compliance warping gives: the contact
+stage never forms W, and a sweep reads the bodies' compliances on the touched nodes instead). Taichi ndarrays are used rather than fields so that problems of any size reuse the same
 compiled kernels and are freed with the solver; on the CPU plain numpy arrays take their place
 (kernels read and write them in place), since allocating and filling a Taichi ndarray costs
 about a millisecond, more than a whole solve of a hundred contacts. Reactions are accumulated in the backend's float
@@ -51,7 +52,7 @@ type (with float32, tolerances much below 1e-6 are out of reach).
 
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -106,6 +107,66 @@ def natural_map_residual(W, q, mu, r) -> float:
     x = R - u
     x[:, 0] -= mu * np.linalg.norm(u[:, 1:], axis=1)
     return float(np.linalg.norm(R - project_cone(x, mu)) / (1.0 + np.linalg.norm(q)))
+
+
+@dataclass
+class FactoredDelassus:
+    """W = scale Σ_s P_s Q_s P_sᵀ: a Delassus operator kept as its factors, the form compliance
+    warping gives (tissue.contact.compliance: P_s = H R of body s on the dofs its rows touch, Q_s
+    its rest compliance there), so that W is never formed: a Gauss-Seidel sweep reads the Q_s,
+    which are far smaller than W when contact points outnumber the nodes they move.
+
+    Contact i's blocks are e = ptr[i] .. ptr[i+1]-1: the 3×3 block blocks[e] of P at columns
+    col[e] .. col[e]+2 of the segments' dofs side by side, in segment segment[e]. Segment s (one
+    body) owns columns y_offset[s] .. y_offset[s+1]-1 and its d_s × d_s Q_s (row-major, symmetric)
+    at Q[q_offset[s]:]. diagonal: W's 3×3 diagonal blocks (n, 3, 3), scale included.
+    """
+
+    ptr: np.ndarray
+    col: np.ndarray
+    segment: np.ndarray
+    blocks: np.ndarray
+    Q: np.ndarray
+    y_offset: np.ndarray
+    q_offset: np.ndarray
+    diagonal: np.ndarray
+    scale: float = 1.0
+
+    @property
+    def n(self) -> int:
+        return len(self.ptr) - 1
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (3 * self.n, 3 * self.n)
+
+    def scaled(self, factor: float) -> "FactoredDelassus":
+        """factor W, sharing the factors."""
+        return replace(self, scale=self.scale * factor, diagonal=self.diagonal * factor)
+
+    def packed(self) -> np.ndarray:
+        """[ptr | col | segment | y_offset | q_offset], int32: the kernels' index argument."""
+        return np.concatenate([self.ptr, self.col, self.segment, self.y_offset, self.q_offset]).astype(np.int32)
+
+    def _P(self) -> sp.csr_matrix:
+        rows = np.repeat(np.arange(self.n), np.diff(self.ptr))
+        r = np.broadcast_to((3 * rows)[:, None, None] + np.arange(3)[:, None], self.blocks.shape)
+        c = np.broadcast_to(np.asarray(self.col)[:, None, None] + np.arange(3), self.blocks.shape)
+        return sp.csr_matrix((self.blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * self.n, self.y_offset[-1]))
+
+    def _Q(self) -> sp.csr_matrix:
+        d = np.diff(self.y_offset)
+        return sp.block_diag([self.Q[o:o + k * k].reshape(k, k) for o, k in zip(self.q_offset, d)] or
+                             [np.zeros((0, 0))], format="csr")
+
+    def __matmul__(self, r):
+        P = self._P()
+        return self.scale * (P @ (self._Q() @ (P.T @ r)))
+
+    def toarray(self) -> np.ndarray:
+        """W as a dense matrix (numpy, from the factors: for checks and for callers that need W)."""
+        P = self._P()
+        return self.scale * (P @ (self._Q() @ P.T.toarray()))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -223,8 +284,17 @@ def _error2(r: ti.template(), u: ti.template(), mu: ti.template()):
 
 
 # ----------------------------------------------------------------------------------------------
-# Products with W: rows 3i..3i+2 of W times r (gathers, so no atomics and reductions in registers)
+# Products with W, by layout. Every kernel takes the layout's arrays in three slots a, b, c:
+#   DENSE     a = W (3n × 3n)
+#   CSR       a = indptr, b = indices, c = blocks (3×3 block (i, indices[k]) of W in blocks[k])
+#   FACTORED  a = index, b = blocks, c = Q (FactoredDelassus.packed()); y = scale Q Pᵀ r, z = Pᵀ r
+# Dense and block-CSR gather row i of W times r (no atomics; sums in registers). The factored
+# layout keeps y up to date instead: (W r)_i = P_i y, and a change Δr_i adds scale Q P_iᵀ Δr_i
+# to y (three rows of Q per block of P_i, read in memory order).
 # ----------------------------------------------------------------------------------------------
+
+DENSE, CSR, FACTORED = 0, 1, 2
+
 
 @ti.func
 def _wr_dense(W: ti.template(), r: ti.template(), i):
@@ -239,7 +309,6 @@ def _wr_dense(W: ti.template(), r: ti.template(), i):
 
 @ti.func
 def _wr_csr(indptr: ti.template(), indices: ti.template(), blocks: ti.template(), r: ti.template(), i):
-    # blocks[k] is the 3x3 block (i, indices[k]) of W.
     s = ti.Vector([0.0, 0.0, 0.0])
     for k in range(indptr[i], indptr[i + 1]):
         j = indices[k]
@@ -249,17 +318,92 @@ def _wr_csr(indptr: ti.template(), indices: ti.template(), blocks: ti.template()
 
 
 @ti.func
-def _gs_update(i, wr, q: ti.template(), Wd: ti.template(), mu: ti.template(), r: ti.template()):
-    """Solve contact i with the others fixed (wr = (W r)_i), store r_i; return the squared
-    natural-map error the old r_i had, a cheap running estimate of the residual."""
-    A = _block(Wd, i)
-    ri = _vec(r, i)
-    ui = _vec(q, i) + wr
-    rnew = _local_solve(A, ui - A @ ri, mu[i])
-    for c in ti.static(range(3)):
-        r[3 * i + c] = rnew[c]
-    return _contact_error2(ri, ui, mu[i])
+def _factored_offsets(index: ti.template(), n, nnz):
+    """Offsets of ptr, col, segment, y_offset, q_offset in FactoredDelassus.packed()."""
+    o_col = n + 1
+    o_seg = o_col + nnz
+    o_y = o_seg + nnz
+    segments = (index.shape[0] - o_y - 1) // 2
+    return o_col, o_seg, o_y, o_y + segments + 1, segments
 
+
+@ti.func
+def _wr_factored(index: ti.template(), blocks: ti.template(), y: ti.template(), n, i):
+    o_col = n + 1
+    s = ti.Vector([0.0, 0.0, 0.0])
+    for e in range(index[i], index[i + 1]):
+        c = index[o_col + e]
+        s += _block(blocks, e) @ ti.Vector([y[c], y[c + 1], y[c + 2]])
+    return s
+
+
+@ti.func
+def _wr(layout: ti.template(), a: ti.template(), b: ti.template(), c: ti.template(), y: ti.template(),
+        r: ti.template(), i):
+    """(W r)_i (for FACTORED: P_i y, with y up to date)."""
+    s = ti.Vector([0.0, 0.0, 0.0])
+    if ti.static(layout == DENSE):
+        s = _wr_dense(a, r, i)
+    elif ti.static(layout == CSR):
+        s = _wr_csr(a, b, c, r, i)
+    else:
+        s = _wr_factored(a, b, y, r.shape[0] // 3, i)
+    return s
+
+
+@ti.func
+def _spread(index: ti.template(), blocks: ti.template(), Q: ti.template(), y: ti.template(), n, i, dr, scale):
+    """y += scale Q P_iᵀ dr: for each block of contact i, three rows of its segment's Q."""
+    o_col, o_seg, o_y, o_q, _ = _factored_offsets(index, n, blocks.shape[0])
+    for e in range(index[i], index[i + 1]):
+        z = scale * (_block(blocks, e).transpose() @ dr)
+        seg = index[o_seg + e]
+        y0 = index[o_y + seg]
+        d = index[o_y + seg + 1] - y0
+        row = index[o_q + seg] + (index[o_col + e] - y0) * d
+        for m in range(d):
+            y[y0 + m] += Q[row + m] * z[0] + Q[row + d + m] * z[1] + Q[row + 2 * d + m] * z[2]
+
+
+@ti.func
+def _refresh(layout: ti.template(), a: ti.template(), b: ti.template(), c: ti.template(), r: ti.template(),
+             y: ti.template(), z: ti.template(), scale):
+    """FACTORED: y = scale Q Pᵀ r from scratch (z = Pᵀ r first, then one product per segment);
+    after a change of r other than one contact's (a start, an Anderson step), and before the
+    exact residual, so rounding in the running updates never accumulates into it."""
+    if ti.static(layout == FACTORED):
+        n = r.shape[0] // 3
+        o_col, o_seg, o_y, o_q, segments = _factored_offsets(a, n, b.shape[0])
+        for k in range(a[o_q - 1]):
+            z[k] = 0.0
+        for i in range(n):
+            ri = _vec(r, i)
+            for e in range(a[i], a[i + 1]):
+                t = _block(b, e).transpose() @ ri
+                col = a[o_col + e]
+                for k in ti.static(range(3)):
+                    z[col + k] += t[k]
+        for seg in range(segments):
+            y0 = a[o_y + seg]
+            d = a[o_y + seg + 1] - y0
+            row = a[o_q + seg]
+            for k in range(d):
+                acc = 0.0
+                for m in range(d):
+                    acc += c[row + k * d + m] * z[y0 + m]
+                y[y0 + k] = scale * acc
+
+
+@ti.func
+def _residual(layout: ti.template(), a: ti.template(), b: ti.template(), c: ti.template(), q: ti.template(),
+              mu: ti.template(), r: ti.template(), u: ti.template(), y: ti.template(), z: ti.template(), scale):
+    """u = W r + q for every contact, and the squared natural-map error of r."""
+    _refresh(layout, a, b, c, r, y, z, scale)
+    for i in range(mu.shape[0]):
+        ui = _vec(q, i) + _wr(layout, a, b, c, y, r, i)
+        for k in ti.static(range(3)):
+            u[3 * i + k] = ui[k]
+    return _error2(r, u, mu)
 
 
 @ti.func
@@ -367,61 +511,46 @@ def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti
 
 
 # ----------------------------------------------------------------------------------------------
-# Gauss-Seidel kernels: all sweeps in one launch, serial. The exact residual needs u = W r + q
-# (one more pass over W), so it is computed only when the sweep's running estimate says "converged"
-# (and at the start and the end).
+# Gauss-Seidel: all sweeps in one launch, serial. The exact residual needs u = W r + q (one more
+# pass over W), so it is computed only when the sweep's running estimate says "converged" (and at
+# the start and the end).
 # ----------------------------------------------------------------------------------------------
 
 @ti.kernel
-def _gs_dense(W: ti.types.ndarray(), Wd: ti.types.ndarray(), q: ti.types.ndarray(),
-              mu: ti.types.ndarray(), r: ti.types.ndarray(), u: ti.types.ndarray(), hist: ti.types.ndarray(),
-              gram: ti.types.ndarray(), window: ti.i32, restarts: ti.i32, max_it: ti.i32, tol2: float, stats: ti.types.ndarray()):
+def _gauss_seidel(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndarray(), c: ti.types.ndarray(),
+                  Wd: ti.types.ndarray(), q: ti.types.ndarray(), mu: ti.types.ndarray(), r: ti.types.ndarray(),
+                  u: ti.types.ndarray(), y: ti.types.ndarray(), z: ti.types.ndarray(), hist: ti.types.ndarray(),
+                  gram: ti.types.ndarray(), window: ti.i32, restarts: ti.i32, max_it: ti.i32, tol2: float,
+                  scale: float, stats: ti.types.ndarray()):
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, restarts if window > 0 else 0, 1e300
+    n = mu.shape[0]
+    _refresh(layout, a, b, c, r, y, z, scale)
     while True:
         if it == 0 or est <= tol2 or it >= max_it:
-            for k in range(q.shape[0]):
-                s = q[k]
-                for l in range(q.shape[0]):
-                    s += W[k, l] * r[l]
-                u[k] = s
-            err2 = _error2(r, u, mu)
+            err2 = _residual(layout, a, b, c, q, mu, r, u, y, z, scale)
             if err2 <= tol2 or it >= max_it:
                 break
         _save(r, hist, 2 * window + 2, on)
         est = 0.0
-        for i in range(mu.shape[0]):
-            est += _gs_update(i, _wr_dense(W, r, i), q, Wd, mu, r)
+        for i in range(n):
+            # Contact i solved with the others fixed; est gathers the error the old r_i had (a
+            # cheap running estimate of the residual).
+            A = _block(Wd, i)
+            ri = _vec(r, i)
+            ui = _vec(q, i) + _wr(layout, a, b, c, y, r, i)
+            rnew = _local_solve(A, ui - A @ ri, mu[i])
+            for k in ti.static(range(3)):
+                r[3 * i + k] = rnew[k]
+            est += _contact_error2(ri, ui, mu[i])
+            if ti.static(layout == FACTORED):
+                dr = rnew - ri
+                if dr.dot(dr) > 0.0:
+                    _spread(a, b, c, y, n, i, dr, scale)
         it += 1
         if on > 0:
             acc = _accelerate(r, hist, gram, mu, window, est, ti.Vector([since, on, last]))
             since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
-    stats[0] = it
-    stats[1] = err2
-
-
-@ti.kernel
-def _gs_csr(indptr: ti.types.ndarray(), indices: ti.types.ndarray(), blocks: ti.types.ndarray(),
-            Wd: ti.types.ndarray(), q: ti.types.ndarray(), mu: ti.types.ndarray(),
-            r: ti.types.ndarray(), u: ti.types.ndarray(), hist: ti.types.ndarray(), gram: ti.types.ndarray(),
-            window: ti.i32, restarts: ti.i32, max_it: ti.i32, tol2: float, stats: ti.types.ndarray()):
-    it, est, err2, since, on, last = 0, 0.0, 0.0, 0, restarts if window > 0 else 0, 1e300
-    while True:
-        if it == 0 or est <= tol2 or it >= max_it:
-            for i in range(mu.shape[0]):
-                ui = _vec(q, i) + _wr_csr(indptr, indices, blocks, r, i)
-                for c in ti.static(range(3)):
-                    u[3 * i + c] = ui[c]
-            err2 = _error2(r, u, mu)
-            if err2 <= tol2 or it >= max_it:
-                break
-        _save(r, hist, 2 * window + 2, on)
-        est = 0.0
-        for i in range(mu.shape[0]):
-            est += _gs_update(i, _wr_csr(indptr, indices, blocks, r, i), q, Wd, mu, r)
-        it += 1
-        if on > 0:
-            acc = _accelerate(r, hist, gram, mu, window, est, ti.Vector([since, on, last]))
-            since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
+            _refresh(layout, a, b, c, r, y, z, scale)
     stats[0] = it
     stats[1] = err2
 
@@ -431,22 +560,16 @@ def _gs_csr(indptr: ti.types.ndarray(), indices: ti.types.ndarray(), blocks: ti.
 # ----------------------------------------------------------------------------------------------
 
 @ti.kernel
-def _matvec_dense(W: ti.types.ndarray(), q: ti.types.ndarray(), r: ti.types.ndarray(),
-                  u: ti.types.ndarray()):
-    for k in range(q.shape[0]):
-        s = q[k]
-        for l in range(q.shape[0]):
-            s += W[k, l] * r[l]
-        u[k] = s
-
-
-@ti.kernel
-def _matvec_csr(indptr: ti.types.ndarray(), indices: ti.types.ndarray(), blocks: ti.types.ndarray(),
-                q: ti.types.ndarray(), r: ti.types.ndarray(), u: ti.types.ndarray()):
-    for i in range(indptr.shape[0] - 1):
-        ui = _vec(q, i) + _wr_csr(indptr, indices, blocks, r, i)
-        for c in ti.static(range(3)):
-            u[3 * i + c] = ui[c]
+def _matvec(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndarray(), c: ti.types.ndarray(),
+            q: ti.types.ndarray(), r: ti.types.ndarray(), u: ti.types.ndarray(), y: ti.types.ndarray(),
+            z: ti.types.ndarray(), scale: float):
+    """u = W r + q (FACTORED: y refreshed on one thread first, then every contact in parallel)."""
+    for _ in range(1):
+        _refresh(layout, a, b, c, r, y, z, scale)
+    for i in range(q.shape[0] // 3):
+        ui = _vec(q, i) + _wr(layout, a, b, c, y, r, i)
+        for k in ti.static(range(3)):
+            u[3 * i + k] = ui[k]
 
 
 @ti.kernel
@@ -525,7 +648,12 @@ class FrictionalContactSolver:
             raise TissueError(f"layout: unknown value {layout!r}; expected one of {', '.join(LAYOUTS)}")
         if int(anderson) != anderson or anderson < 0:
             raise TissueError(f"anderson: must be a non-negative integer, got {anderson!r}")
-        if sp.issparse(W):
+        factored = isinstance(W, FactoredDelassus)
+        if factored:
+            if check:
+                for name in ("blocks", "Q", "diagonal"):
+                    _finite(f"W.{name}", getattr(W, name))
+        elif sp.issparse(W):
             W = sp.csr_matrix(W, dtype=np.float64)
             _finite("W", W.data)
         else:
@@ -547,7 +675,7 @@ class FrictionalContactSolver:
         _finite("mu", mu)
         if np.any(mu < 0):
             raise TissueError(f"mu: negative friction coefficient at contact {int(np.argmax(mu < 0))}")
-        D = _diagonal_blocks(W, n)
+        D = W.diagonal if factored else _diagonal_blocks(W, n)
         if n and check:
             sym = 0.5 * (D + D.transpose(0, 2, 1))
             lo = np.linalg.eigvalsh(sym)[:, 0]
@@ -557,8 +685,9 @@ class FrictionalContactSolver:
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
         self.n, self.W, self.mu, self.method = n, W, mu, method
         self.anderson = int(anderson) if method == "gauss_seidel" else 0
-        self.dense = layout == "dense" or (layout == "auto" and (
-            not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
+        self.dense = not factored and (layout == "dense" or (layout == "auto" and (
+            not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2)))
+        self.layout = FACTORED if factored else (DENSE if self.dense else CSR)
         # Jacobi's starting relaxation factor (given, or estimated from the spectrum of D^-1 W).
         self.omega = float(omega) if omega is not None else (
             self._initial_omega(D) if method == "jacobi" else 1.0)
@@ -598,13 +727,23 @@ class FrictionalContactSolver:
         m = self.anderson                            # Anderson's history (see _anderson)
         self._hist = _array((2 * m + 3, 3 * self.n) if m else (1, 1), real)
         self._gram = _array((m, 2 * m + 2) if m else (1, 1), real)
-        if self.dense:
+        # The layout's arrays (slots a, b, c of the kernels, see "Products with W"), the factored
+        # layout's y and z (one element elsewhere) and its scale.
+        none = _array((1,), real)
+        self._y = self._z = none
+        self._scale = 1.0
+        if self.layout == DENSE:
             W = self.W.toarray() if sp.issparse(self.W) else self.W
-            self._W = nd(W)
-        else:
+            self._abc = (nd(W), none, none)
+        elif self.layout == CSR:
             B = sp.bsr_matrix(sp.csr_matrix(self.W), blocksize=(3, 3))   # csr_matrix drops zeros
             B.sort_indices()
-            self._csr = (nd(B.indptr, ti.i32), nd(B.indices, ti.i32), nd(B.data))
+            self._abc = (nd(B.indptr, ti.i32), nd(B.indices, ti.i32), nd(B.data))
+        else:
+            W = self.W
+            self._abc = (nd(W.packed(), ti.i32), nd(W.blocks), nd(W.Q))
+            self._y, self._z = (_array((max(1, int(W.y_offset[-1])),), real) for _ in range(2))
+            self._scale = float(W.scale)
 
     def solve(self, q, tol: float = 1e-6, max_iterations: int = 1000, r0=None):
         n = self.n
@@ -624,6 +763,7 @@ class FrictionalContactSolver:
             raise TissueError(f"max_iterations: must be a non-negative integer, got {max_iterations!r}")
         max_iterations = int(max_iterations)
         if n == 0:
+            self.u = np.zeros(0)
             return np.zeros(0), ContactInfo(0, 0.0, 0.0, True, self.method)
 
         t0 = time.perf_counter()
@@ -637,25 +777,28 @@ class FrictionalContactSolver:
         r = self._r.to_numpy().astype(np.float64)
         elapsed = time.perf_counter() - t0
         if self.method == "gauss_seidel" and self._npr == np.float64:
-            # The kernel's own error of the returned r (the same formula, in float64).
+            # The kernel's own error and u of the returned r (the same formulas, in float64).
             residual = float(np.sqrt(self._last_error2)) / (1.0 + float(np.linalg.norm(q)))
+            self.u = self._u.to_numpy()
         else:
             residual = natural_map_residual(self.W, q, self.mu, r)   # in float64, whatever the backend
+            self.u = self.W @ r + q
         info = ContactInfo(iterations, residual, elapsed, residual <= tol, self.method)
         return r, info
 
     def _gauss_seidel(self, max_iterations, tol_abs):
-        layout = (_gs_dense, (self._W,)) if self.dense else (_gs_csr, self._csr)
-        layout[0](*layout[1], self._Wd, self._q, self._mu, self._r, self._u, self._hist, self._gram,
-                  self.anderson, ANDERSON_RESTARTS, max_iterations, tol_abs ** 2, self._stats)
+        _gauss_seidel(self.layout, *self._abc, self._Wd, self._q, self._mu, self._r, self._u, self._y, self._z,
+                      self._hist, self._gram, self.anderson, ANDERSON_RESTARTS, max_iterations, tol_abs ** 2,
+                      self._scale, self._stats)
         stats = self._stats.to_numpy()
         self._last_error2 = float(stats[1])
         return int(stats[0])
 
     def _jacobi(self, max_iterations, tol_abs):
         omega, best = self.omega, np.inf
-        matvec = (lambda: _matvec_dense(self._W, self._q, self._r, self._u)) if self.dense else (
-            lambda: _matvec_csr(*self._csr, self._q, self._r, self._u))
+        def matvec():
+            _matvec(self.layout, *self._abc, self._q, self._r, self._u, self._y, self._z, self._scale)
+
         r_best = _array((3 * self.n,), backend.current().real)
         it = stalled = 0
         while True:

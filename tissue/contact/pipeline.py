@@ -2,15 +2,20 @@
 
   1. detection    surface vertices within the contact distance of obstacles / other bodies
   2. constraints  H (normal and two tangents per contact, three rows per attachment), δ_free, JDS
-  3. compliance   nodal rotations and W = Σ h (H R) A₀⁻¹ (H R)ᵀ ("warped"), or h H A⁻¹ Hᵀ ("exact")
+  3. compliance   nodal rotations and W = Σ h (H R) A₀⁻¹ (H R)ᵀ ("warped"), kept as its factors
+                  (FactoredDelassus: each body's H R and A₀⁻¹ among the nodes its rows touch; W is
+                  formed only when asked for, or with attachments), or h H A⁻¹ Hᵀ ("exact")
   4. lcp          Coulomb friction by projected block Gauss-Seidel (tissue.contact.frictional_contact),
                   warm-started from the previous step's reactions matched by contact identity;
                   attachments (bilateral) are eliminated first by a Schur complement
   5. correction   x = x_free + R h A₀⁻¹ (H R)ᵀ λ, v = v_free + (x - x_free) / h
 
 Kernel launches per step (warped): one detection launch per body (plus one per further body pair
-with three or more bodies), one for W and one for the correction per touched body, one for the
-Gauss-Seidel; everything between them is a few dozen numpy operations on arrays of contacts.
+with three or more bodies), one for W's factors and one for the correction per touched body, one
+for the Gauss-Seidel; everything between them is a few dozen numpy operations on arrays of contacts.
+Why factors: the contact points outnumber the nodes they move (the pressed liver: 147 contacts, 441
+rows, on 54 nodes), so the compliance among those nodes (162², 0.2 MB) is smaller than W (441²,
+1.6 MB), and forming W (the paper's kernel 2) is skipped.
 
 λ are impulses (N·s) and δ = δ_free + W λ are positions (see compliance.py); the reaction force
 of a contact is λ / h. The frictional contact problem is solved on W / w̄ with w̄ the mean of its
@@ -20,7 +25,7 @@ solver (≈ the worst violation of non-penetration / Coulomb's law, as a displac
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -33,7 +38,7 @@ from ..stats import Stats
 from .compliance import ExactCompliance, WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows
 from .detection import SAMPLINGS, Contacts, Detector
-from .frictional_contact import ContactInfo, FrictionalContactSolver
+from .frictional_contact import ContactInfo, FactoredDelassus, FrictionalContactSolver
 from .obstacles import RigidObstacle
 
 COMPLIANCES = ("warped", "exact")
@@ -80,11 +85,23 @@ class ContactResult:
 
     contacts: Contacts
     rows: ConstraintRows | None = None
-    W: np.ndarray | None = None       # (n_rows, n_rows) Delassus operator (metres per N·s); a view of a
-                                      # buffer the step after next overwrites (copy it to keep it)
+    # The Delassus operator (metres per N·s): with warped compliance and no attachments its factors
+    # (FactoredDelassus, shared with nothing else), else an (n_rows, n_rows) array, a view of a
+    # buffer the step after next overwrites (copy it to keep it). `W` is it as an array.
+    delassus: np.ndarray | FactoredDelassus | None = None
     impulses: np.ndarray = field(default_factory=lambda: np.zeros(0))  # λ (n_rows,), N·s
     info: ContactInfo | None = None
     dt: float = 1.0
+    _W: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def W(self) -> np.ndarray | None:
+        """The Delassus operator as an (n_rows, n_rows) array (formed from the factors on first use)."""
+        if not isinstance(self.delassus, FactoredDelassus):
+            return self.delassus
+        if self._W is None:
+            self._W = self.delassus.toarray()
+        return self._W
 
     @property
     def contact_impulses(self) -> np.ndarray:
@@ -101,7 +118,7 @@ class ContactResult:
     @property
     def gaps(self) -> np.ndarray:
         """Linearised constraint values δ = δ_free + W λ after the correction (n_rows,)."""
-        return self.rows.q + self.W @ self.impulses if self.rows is not None else np.zeros(0)
+        return self.rows.q + self.delassus @ self.impulses if self.rows is not None else np.zeros(0)
 
 
 class ContactStage:
@@ -243,7 +260,9 @@ class ContactStage:
                 jds = {b: JaggedDiagonal(rows, b) for b in touched}
 
         with stats.stage("compliance"):
-            if s.compliance == "warped":
+            if s.compliance == "warped" and not self.attachments:
+                W = self._factored(rows, touched, jds)
+            elif s.compliance == "warped":
                 W = self._delassus_buffer(rows.n_rows, self._np)
                 for b in touched:
                     c = self.compliance[b]
@@ -270,39 +289,82 @@ class ContactStage:
         self._warm_keys = contacts.keys()
         self._warm_impulses = np.einsum("ki,kij->kj", lam[:3 * nc].reshape(-1, 3), rows.frames)
         self.last = ContactResult(contacts, rows, W, lam, info, h)
-        normal = rows.q[:3 * nc:3] + W[:3 * nc:3] @ lam       # δ_n after the correction
+        normal = self._gaps[0::3]                               # δ_n after the correction
         stats.count(contacts=nc, rows=rows.n_rows, gs_iterations=info.iterations if info else 0,
                     gs_residual=info.residual if info else 0.0,
                     penetration=float(max(0.0, -normal.min())) if nc else 0.0)
         return self.last
 
-    def _solve(self, W: np.ndarray, rows: ConstraintRows, contacts: Contacts, mu: np.ndarray):
-        """λ (n_rows,) from δ = W λ + δ_free: attachments eliminated (Schur), then the cone problem."""
+    def _factored(self, rows: ConstraintRows, touched: list[int], jds: dict) -> FactoredDelassus:
+        """W's factors (FactoredDelassus) from each touched body's warped compliance: their blocks
+        ordered by block row (a body's own order within one), one segment per body."""
+        parts = []                          # per body: block rows, local node of each block
+        for b in touched:
+            c, j = self.compliance[b], jds[b]
+            c.prepare(j)
+            row, local = j.row, j.local
+            if c.free:                      # the translation's block per row, at the extra node
+                row, local = np.r_[row, j.perm], np.r_[local, np.full(j.n_active, len(j.touched), np.int32)]
+            parts.append((row, local, c.factor_size()))
+        sizes = np.array([d for *_, d in parts])
+        y_offset = np.r_[0, np.cumsum(sizes)]
+        q_offset = np.r_[0, np.cumsum(sizes ** 2)][:-1]
+        row = np.concatenate([p[0] for p in parts])
+        col = np.concatenate([y_offset[k] + 3 * p[1] for k, p in enumerate(parts)])
+        segment = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
+        order = np.argsort(row, kind="stable")
+        pos = np.empty(len(row), np.int32)
+        pos[order] = np.arange(len(row))
+        n_block_rows = rows.n_rows // 3
+        blocks = np.empty((len(row), 3, 3), self._np)
+        Q = np.empty(int(np.sum(sizes ** 2)), self._np)
+        diagonal = np.zeros((n_block_rows, 3, 3), self._np)
+        start = 0
+        for k, b in enumerate(touched):
+            end = start + len(parts[k][0])
+            self.compliance[b].factor(blocks, Q[q_offset[k]:q_offset[k] + sizes[k] ** 2], diagonal, pos[start:end])
+            start = end
+        ptr = np.r_[0, np.cumsum(np.bincount(row, minlength=n_block_rows))]
+        return FactoredDelassus(ptr, col[order], segment[order], blocks.astype(np.float64, copy=False),
+                                Q.astype(np.float64, copy=False), y_offset, q_offset,
+                                diagonal.astype(np.float64, copy=False), scale=self.dt)
+
+    def _solve(self, W, rows: ConstraintRows, contacts: Contacts, mu: np.ndarray):
+        """λ (n_rows,) from δ = W λ + δ_free: attachments eliminated (Schur; W an array then), then
+        the cone problem. Leaves the contacts' δ at λ in `_gaps` (3 per contact)."""
         s = self.settings
         m = 3 * rows.n_contacts
         q = rows.q
         lam = np.zeros(rows.n_rows)
-        Wc, qc = W[:m, :m], q[:m]
+        factored = isinstance(W, FactoredDelassus)
+        Wc, qc = (W, q) if factored else (W[:m, :m], q[:m])
         if rows.n_rows > m:                 # bilateral rows: δ_b = 0 ⇒ λ_b = -W_bb⁻¹ (q_b + W_bc λ_c)
             bb = scipy.linalg.cho_factor(W[m:, m:])
             Wc = Wc - W[:m, m:] @ scipy.linalg.cho_solve(bb, W[m:, :m])
             qc = qc - W[:m, m:] @ scipy.linalg.cho_solve(bb, q[m:])
-        info = None
+        info, self._gaps = None, np.zeros(m)
         if m:
-            # The problem on W / w̄ (w̄ the mean of its diagonal), in a buffer kept between steps.
-            if self._scaled.size < m * m:
-                self._scaled = np.empty(max(m * m, 2 * self._scaled.size))
-            scaled = self._scaled[:m * m].reshape(m, m)
-            # Frictionless contacts have empty tangent rows; any positive diagonal there keeps the
-            # solver's 3×3 blocks definite (with μ = 0 it never uses them: r_t = 0).
-            t = 3 * np.flatnonzero(mu == 0)
-            diagonal = np.diagonal(Wc).copy()
-            for j in (1, 2):
-                diagonal[t + j] = diagonal[t]
-            scale = float(np.mean(diagonal))
-            np.multiply(Wc, 1.0 / scale, out=scaled)
-            for j in (1, 2):
-                scaled[t + j, t + j] = scaled[t, t]
+            # The problem on W / w̄ (w̄ the mean of its diagonal). Frictionless contacts have empty
+            # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
+            # (with μ = 0 it never uses them: r_t = 0).
+            t = np.flatnonzero(mu == 0)
+            if factored:
+                D = W.diagonal.copy()
+                D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
+                scale = float(np.mean(np.trace(D, axis1=1, axis2=2))) / 3.0
+                scaled = replace(W, diagonal=D).scaled(1.0 / scale)
+            else:
+                diagonal = np.diagonal(Wc).copy()
+                for j in (1, 2):
+                    diagonal[3 * t + j] = diagonal[3 * t]
+                scale = float(np.mean(diagonal))
+                # In a buffer kept between steps.
+                if self._scaled.size < m * m:
+                    self._scaled = np.empty(max(m * m, 2 * self._scaled.size))
+                scaled = self._scaled[:m * m].reshape(m, m)
+                np.multiply(Wc, 1.0 / scale, out=scaled)
+                for j in (1, 2):
+                    scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
             warm = np.zeros((rows.n_contacts, 3))
             if len(self._warm_keys):
                 keys = contacts.keys()
@@ -314,9 +376,9 @@ class ContactStage:
             r, info = solver.solve(qc, s.tolerance, s.max_iterations, r0=scale * warm.ravel())
             if not np.all(np.isfinite(r)):      # (W is not checked on the way in: it is ours)
                 raise TissueError(f"contact: the frictional contact problem gave non-finite reactions "
-                                  f"({rows.n_contacts} contacts; W finite: {bool(np.all(np.isfinite(Wc)))}); "
-                                  "the bodies' state may have diverged (reduce dt)")
+                                  f"({rows.n_contacts} contacts); the bodies' state may have diverged (reduce dt)")
             lam[:m] = r / scale
+            self._gaps = solver.u
         if rows.n_rows > m:
             lam[m:] = -scipy.linalg.cho_solve(bb, q[m:] + W[m:, :m] @ lam[:m])
         return lam, info
