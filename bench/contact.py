@@ -10,9 +10,11 @@ and the contact-force error between the two, in one run on this machine.
                   step, the exact W of the same rows and both frictional problems solved: the
                   error of the warped contact forces.
     450 rows      the same scene with the alarm distance widened to 4 mm (about 450 rows while
-                  pressed): per stage, and every 4th step with ≥ 420 rows the compliance stage's W
-                  by warping against the exact W of the same rows (LU of this step's matrix,
-                  solves, H A⁻¹ Hᵀ), ms and ratio, and the force error there.
+                  pressed): per stage, and every 4th step with ≥ 420 rows the exact W of the same
+                  rows (LU of this step's matrix, solves, H A⁻¹ Hᵀ) against W by warping, formed
+                  densely (the paper's kernels) and as the stage keeps it (its factors), ms and
+                  ratios, and the force error there; then the run again with W formed
+                  (contact.delassus=dense): the stages side by side.
     row bands     per stage, the medians over the steps of both runs above with about 100 (50-170), 250 and
                   450-500 constraint rows (the press's approach, its default, the wide alarm).
     Gauss-Seidel  the frictional problems of the 450-row run (every 8th step with ≥ 420 rows),
@@ -363,6 +365,17 @@ def main(argv=None) -> int:
               f"{c['exact_ms']['median'] / c['warped_ms']['median']:.0f}x")
         _errors(c, "at ≥ 420 rows")
 
+    # The same 450-row run with W formed (the paper's kernel 2, dense Gauss-Seidel) instead of
+    # kept as its factors: the stages that differ, side by side in this run.
+    # (With the same side checks as the run above, so that both runs' caches see the same.)
+    dense = run_press("warped", 72, check_every=4, min_rows=420,
+                      overrides=[f"contact.distance={WIDE_DISTANCE}", "contact.delassus=dense"])
+    out["liver_press_450_rows_dense_W"] = dense
+    _table("liver_press, 450 rows: W's factors against W formed", {"factors": wide, "dense W": dense})
+    f, d = wide["ms_per_step"], dense["ms_per_step"]
+    print(f"dense W / factors: compliance {d['compliance'] / f['compliance']:.2f}x, lcp {d['lcp'] / f['lcp']:.2f}x, "
+          f"contact stage {d['contact'] / f['contact']:.2f}x")
+
     bands = row_bands(press_results["warped"], wide)
     out["row_bands"] = bands
     print(f"\nwarped, by constraint rows (medians, ms/step):\n{'rows':<9}{'steps':>6}{'GS it':>7}"
@@ -388,7 +401,7 @@ def main(argv=None) -> int:
         out["liver_floor"]["exact_over_warped_contact"] = ratio
         print(f"contact stage: exact / warped = {ratio:.1f}x (SOFA: warped {SOFA_FLOOR_MS['warped']} ms/step "
               f"in total, exact {SOFA_FLOOR_MS['exact']})")
-    for run in (*press_results.values(), wide, *(out.get("liver_floor", {}).values())):
+    for run in (*press_results.values(), wide, dense, *(out.get("liver_floor", {}).values())):
         if isinstance(run, dict):
             run.pop("per_step", None)
     write_results("contact-quick" if args.quick else "contact", out)

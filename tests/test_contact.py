@@ -696,7 +696,7 @@ def test_stage_factors_equal_the_assembled_warped_W(damped_block):
     upper = make_solver(block((0.05, 0.05, 0.03), (2, 2, 2), z0=0.05), dt=0.01, rayleigh_mass=1.0,
                         rayleigh_stiffness=0.01)
     stage = ContactStage([lower, upper], [RigidObstacle(Plane())],
-                         ContactSettings(friction=0.3, contact_distance=2e-3, tolerance=1e-10))
+                         ContactSettings(friction=0.3, contact_distance=2e-3, tolerance=1e-10, delassus="factored"))
     for _ in range(5):
         lower.step()
         upper.step()
@@ -764,6 +764,7 @@ def test_moving_probe_pushes_and_surface_sampling_stops_it(coarse_block, samplin
 
 
 def test_contact_settings_and_stage_validation(damped_block, cantilever):
+    from tissue.contact.constraints import Attachment
     from tissue.contact.obstacles import Plane, RigidObstacle
     from tissue.contact.pipeline import ContactSettings, ContactStage
 
@@ -773,6 +774,11 @@ def test_contact_settings_and_stage_validation(damped_block, cantilever):
         ContactSettings(contact_distance=0)
     with pytest.raises(TissueError, match="max_iterations"):
         ContactSettings(max_iterations=0)
+    with pytest.raises(TissueError, match="delassus"):
+        ContactSettings(delassus="sparse")
+    with pytest.raises(TissueError, match="attachments"):
+        ContactStage([damped_block], [RigidObstacle(Plane())], ContactSettings(delassus="factored"),
+                     attachments=[Attachment(0, 0, point=(0.0, 0.0, 0.0))])
     with pytest.raises(TissueError, match="obstacles"):
         ContactStage([damped_block], [Plane()])
     with pytest.raises(TissueError, match="time step"):

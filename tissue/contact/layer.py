@@ -35,7 +35,9 @@ class Contact(Options):
     distance: alarm distance (m); compliance: 'warped' (precomputed A₀⁻¹ and nodal rotations, the
     paper's) or 'exact' (a sparse LU per step); tolerance (m) and max_iterations: the Gauss-Seidel
     stopping rule; sampling: the contact points of each surface ('vertices'; 'edges' and 'faces'
-    add edge midpoints and centroids, for obstacles thinner than the mesh spacing).
+    add edge midpoints and centroids, for obstacles thinner than the mesh spacing); delassus: how
+    the warped W is kept, as its factors (per body H R and A₀⁻¹ on the touched nodes), formed
+    ('dense'), or 'auto' (factors when smaller than W).
     """
 
     friction: float = 0.3
@@ -45,6 +47,7 @@ class Contact(Options):
     max_iterations: int = 100
     soft_soft: bool = True
     sampling: Literal["vertices", "edges", "faces"] = "vertices"
+    delassus: Literal["auto", "factored", "dense"] = "auto"
 
     def check(self):
         require(self.friction >= 0, "friction", f"must be >= 0, got {self.friction}")
@@ -55,7 +58,7 @@ class Contact(Options):
     def settings(self) -> ContactSettings:
         return ContactSettings(friction=self.friction, contact_distance=self.distance, compliance=self.compliance,
                                tolerance=self.tolerance, max_iterations=self.max_iterations,
-                               soft_soft=self.soft_soft, sampling=self.sampling)
+                               soft_soft=self.soft_soft, sampling=self.sampling, delassus=self.delassus)
 
 
 @dataclass

@@ -42,6 +42,7 @@ from .frictional_contact import ContactInfo, FactoredDelassus, FrictionalContact
 from .obstacles import RigidObstacle
 
 COMPLIANCES = ("warped", "exact")
+DELASSUS = ("auto", "factored", "dense")
 
 
 @dataclass(frozen=True)
@@ -54,12 +55,15 @@ class ContactSettings:
     soft_soft: bool = True            # detect contacts between soft bodies
     sampling: str = "vertices"        # contact points: "vertices", "edges" (+ midpoints), "faces" (+ centroids)
     method: str = "gauss_seidel"      # or "jacobi" (parallel, slower to converge)
+    delassus: str = "auto"            # warped W: "factored", "dense" (formed), "auto" (see _factors_pay)
 
     def __post_init__(self):
         if self.sampling not in SAMPLINGS:
             raise TissueError(f"sampling: unknown {self.sampling!r}; expected one of {SAMPLINGS}")
         if self.compliance not in COMPLIANCES:
             raise TissueError(f"compliance: unknown {self.compliance!r}; expected one of {COMPLIANCES}")
+        if self.delassus not in DELASSUS:
+            raise TissueError(f"delassus: unknown {self.delassus!r}; expected one of {DELASSUS}")
         for name in ("friction", "contact_distance", "tolerance"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
@@ -142,6 +146,9 @@ class ContactStage:
             if not isinstance(o, RigidObstacle):
                 raise TissueError(f"contact: obstacles must be RigidObstacle, got {type(o).__name__}")
         self.attachments = list(attachments)
+        if settings.delassus == "factored" and self.attachments:
+            raise TissueError("delassus: 'factored' cannot take attachments (their Schur complement needs W "
+                              "formed); use 'auto' or 'dense'")
         for a in self.attachments:
             if not isinstance(a, Attachment):
                 raise TissueError(f"contact: attachments must be Attachment, got {type(a).__name__}")
@@ -260,7 +267,7 @@ class ContactStage:
                 jds = {b: JaggedDiagonal(rows, b) for b in touched}
 
         with stats.stage("compliance"):
-            if s.compliance == "warped" and not self.attachments:
+            if s.compliance == "warped" and self._factors_pay(rows, touched, jds):
                 W = self._factored(rows, touched, jds)
             elif s.compliance == "warped":
                 W = self._delassus_buffer(rows.n_rows, self._np)
@@ -294,6 +301,17 @@ class ContactStage:
                     gs_residual=info.residual if info else 0.0,
                     penetration=float(max(0.0, -normal.min())) if nc else 0.0)
         return self.last
+
+    def _factors_pay(self, rows: ConstraintRows, touched: list[int], jds: dict) -> bool:
+        """Whether the warped W is kept as its factors ("auto": when they take at most half of W's
+        memory, i.e. contact points outnumber the nodes they move; then a sweep reads the small
+        compliances, and refreshing y after an Anderson step costs at most half a dense sweep)."""
+        if self.attachments or self.settings.delassus == "dense":
+            return False
+        if self.settings.delassus == "factored":
+            return True
+        sizes = [3 * len(jds[b].touched) + 3 * self.compliance[b].free for b in touched]
+        return 2 * sum(d * d for d in sizes) <= rows.n_rows ** 2
 
     def _factored(self, rows: ConstraintRows, touched: list[int], jds: dict) -> FactoredDelassus:
         """W's factors (FactoredDelassus) from each touched body's warped compliance: their blocks
