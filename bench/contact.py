@@ -375,6 +375,11 @@ def main(argv=None) -> int:
     f, d = wide["ms_per_step"], dense["ms_per_step"]
     print(f"dense W / factors: compliance {d['compliance'] / f['compliance']:.2f}x, lcp {d['lcp'] / f['lcp']:.2f}x, "
           f"contact stage {d['contact'] / f['contact']:.2f}x")
+    if "checks" in wide:
+        exact_ms = wide["checks"]["exact_ms"]["median"]
+        out["exact_over_warped_450_rows"] = {"factors": exact_ms / f["compliance"], "dense_W": exact_ms / d["compliance"]}
+        print(f"exact W ({exact_ms:.0f} ms) / the warped compliance stage: factors {exact_ms / f['compliance']:.0f}x, "
+              f"W formed {exact_ms / d['compliance']:.0f}x")
 
     bands = row_bands(press_results["warped"], wide)
     out["row_bands"] = bands

@@ -383,15 +383,19 @@ def _refresh(layout: ti.template(), a: ti.template(), b: ti.template(), c: ti.te
                 col = a[o_col + e]
                 for k in ti.static(range(3)):
                     z[col + k] += t[k]
+        for k in range(a[o_q - 1]):
+            y[k] = 0.0
         for seg in range(segments):
+            # y += scale z_m Q[m, :] for each dof m with z_m ≠ 0 (Q symmetric: a row, in memory
+            # order); most contacts carry no reaction, so most of z is zero.
             y0 = a[o_y + seg]
             d = a[o_y + seg + 1] - y0
             row = a[o_q + seg]
-            for k in range(d):
-                acc = 0.0
-                for m in range(d):
-                    acc += c[row + k * d + m] * z[y0 + m]
-                y[y0 + k] = scale * acc
+            for m in range(d):
+                zm = scale * z[y0 + m]
+                if zm != 0.0:
+                    for k in range(d):
+                        y[y0 + k] += c[row + m * d + k] * zm
 
 
 @ti.func
