@@ -25,7 +25,10 @@ Methods:
     kernel (a launch costs more than a sweep of a few hundred contacts). A sweep reads W once
     (contact i gathers rows 3i..3i+2 of W times r); the exact residual needs u = W r + q, a second
     pass, so it is computed only when the errors met during the sweep say "converged" (plus at the
-    start, which lets a warm start that already solves the problem cost 0 sweeps).
+    start, which lets a warm start that already solves the problem cost 0 sweeps). Between two
+    residual checks a sweep passes over the contacts that carry nothing and were apart (u_n > 0)
+    when last solved: the check sees them all again, so the stopping rule is unchanged, and most
+    contacts within an alarm distance never touch (the pressed liver: ~140 of ~155).
     Anderson acceleration (`anderson` > 0, default ANDERSON_WINDOW): a sweep is a fixed-point map
     r <- G(r); after each sweep the next start is the combination of the last `anderson` + 1 sweeps'
     results whose residuals G(r) - r combine to the least norm (type II, Walker & Ni 2011),
@@ -517,7 +520,7 @@ def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti
 # ----------------------------------------------------------------------------------------------
 # Gauss-Seidel: all sweeps in one launch, serial. The exact residual needs u = W r + q (one more
 # pass over W), so it is computed only when the sweep's running estimate says "converged" (and at
-# the start and the end).
+# the start and the end); between two, u holds each contact's value when it was last solved.
 # ----------------------------------------------------------------------------------------------
 
 @ti.kernel
@@ -538,13 +541,18 @@ def _gauss_seidel(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndar
         est = 0.0
         for i in range(n):
             # Contact i solved with the others fixed; est gathers the error the old r_i had (a
-            # cheap running estimate of the residual).
-            A = _block(Wd, i)
+            # cheap running estimate of the residual). A contact that carries nothing and was
+            # apart (u_n > 0) when last seen is passed over until the next residual check, which
+            # sees every contact: most of those within the alarm distance never touch.
             ri = _vec(r, i)
+            if ri.norm_sqr() == 0.0 and u[3 * i] > 0.0:
+                continue
+            A = _block(Wd, i)
             ui = _vec(q, i) + _wr(layout, a, b, c, y, r, i)
             rnew = _local_solve(A, ui - A @ ri, mu[i])
             for k in ti.static(range(3)):
                 r[3 * i + k] = rnew[k]
+                u[3 * i + k] = ui[k]
             est += _contact_error2(ri, ui, mu[i])
             if ti.static(layout == FACTORED):
                 dr = rnew - ri
