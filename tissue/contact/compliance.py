@@ -124,16 +124,15 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
             V[a, b] = value[e, a, b]
         hr[e] = V @ R[jds[o_node + e]]
     d = 3 * n_touched
+    ld = d                                          # Qt's row length: a free body's factor adds the translation
+    if ti.static(mode == FACTOR):
+        ld = d + (3 if inverse_mass != 0.0 else 0)
     if ti.static(mode != ROTATE):
         ti.loop_config(serialize=serial)
         for i in range(n_active):
             ht[i] = _row_translation(jds, value, o_count, o_ptr, i)
-        # Q among the touched dofs, gathered once (ld × ld, row-major; a free body's factor adds
-        # the translation's three dofs): a compact copy stays in cache where scattered reads of the
-        # whole Q (3n × 3n, 10 MB for the liver) miss it.
-        ld = d
-        if ti.static(mode == FACTOR):
-            ld = d + (3 if inverse_mass != 0.0 else 0)
+        # Q among the touched dofs, gathered once (ld × ld, row-major): a compact copy stays in
+        # cache where scattered reads of the whole Q (3n × 3n, 10 MB for the liver) miss it.
         ti.loop_config(serialize=serial)
         for a, m in ti.ndrange(ld, ld):
             value_am = 0.0
@@ -171,7 +170,6 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
                     for p, q in ti.static(ti.ndrange(3, 3)):
                         out[rj + q, ri + p] = out[rj + q, ri + p] + h * B[p, q]
     if ti.static(mode == FACTOR):
-        ld = d + (3 if inverse_mass != 0.0 else 0)
         ti.loop_config(serialize=serial)
         for i in range(n_active):
             count = jds[o_count + i]
@@ -321,10 +319,10 @@ class WarpedCompliance:
         """No node held: the rigid translation is kept apart from the warping (see above)."""
         return self.inverse_mass != 0.0
 
-    def factor_size(self) -> int:
-        """The dofs of this body's factor for the prepared rows: 3 per touched node, and 3 for the
+    def factor_size(self, jds: JaggedDiagonal) -> int:
+        """The dofs of this body's factor for the rows `jds`: 3 per touched node, and 3 for the
         translation of a free body."""
-        return 3 * len(self.jds.touched) + 3 * self.free
+        return 3 * len(jds.touched) + 3 * self.free
 
     def _run(self, mode, out, Qt=None, P=None, pos=None) -> None:
         fem, jds = self.solver.fem, self.jds
@@ -343,7 +341,7 @@ class WarpedCompliance:
     def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray) -> None:
         """This body's factors of W (tissue.contact.FactoredDelassus): P[pos[e]] = (H R) block of
         JDS entry e (and P[pos[nnz + i]] = (H T) of sorted block row i, free bodies), Q its
-        compliance on the factor's dofs (factor_size()² entries, row-major), and W's diagonal
+        compliance on the factor's dofs (factor_size(jds)² entries, row-major), and W's diagonal
         blocks += this body's part."""
         if self.jds.n_active:
             self._run(FACTOR, diagonal, Q, P, pos)

@@ -46,7 +46,8 @@ Methods:
 
 W is held on the device dense (row-major), as 3x3 blocks in block-CSR (a large sparse W), or as
 its factors W = scale Σ P Q Pᵀ (`FactoredDelassus`, the form compliance warping gives: the contact
-stage never forms W, and a sweep reads the bodies' compliances on the touched nodes instead). Taichi ndarrays are used rather than fields so that problems of any size reuse the same
+stage never forms W, and a sweep reads the bodies' compliances on the touched nodes instead).
+Taichi ndarrays are used rather than fields so that problems of any size reuse the same
 compiled kernels and are freed with the solver; on the CPU plain numpy arrays take their place
 (kernels read and write them in place), since allocating and filling a Taichi ndarray costs
 about a millisecond, more than a whole solve of a hundred contacts. Reactions are accumulated in the backend's float
@@ -697,14 +698,19 @@ class FrictionalContactSolver:
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
         self.n, self.W, self.mu, self.method = n, W, mu, method
         self.anderson = int(anderson) if method == "gauss_seidel" else 0
-        self.dense = not factored and (layout == "dense" or (layout == "auto" and (
-            not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2)))
-        self.layout = FACTORED if factored else (DENSE if self.dense else CSR)
+        dense = layout == "dense" or (layout == "auto" and (
+            not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
+        self.layout = FACTORED if factored else (DENSE if dense else CSR)
         # Jacobi's starting relaxation factor (given, or estimated from the spectrum of D^-1 W).
         self.omega = float(omega) if omega is not None else (
             self._initial_omega(D) if method == "jacobi" else 1.0)
         if n:
             self._upload(D)
+
+    @property
+    def dense(self) -> bool:
+        """W held as a dense matrix on the device."""
+        return self.layout == DENSE
 
     def _initial_omega(self, D):
         """min(1, 1/lambda_max(D^-1 W)) by a few power iterations (they approach from below)."""

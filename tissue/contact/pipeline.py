@@ -310,8 +310,7 @@ class ContactStage:
             return False
         if self.settings.delassus == "factored":
             return True
-        sizes = [3 * len(jds[b].touched) + 3 * self.compliance[b].free for b in touched]
-        return 2 * sum(d * d for d in sizes) <= rows.n_rows ** 2
+        return 2 * sum(self.compliance[b].factor_size(jds[b]) ** 2 for b in touched) <= rows.n_rows ** 2
 
     def _factored(self, rows: ConstraintRows, touched: list[int], jds: dict) -> FactoredDelassus:
         """W's factors (FactoredDelassus) from each touched body's warped compliance: their blocks
@@ -323,7 +322,7 @@ class ContactStage:
             row, local = j.row, j.local
             if c.free:                      # the translation's block per row, at the extra node
                 row, local = np.r_[row, j.perm], np.r_[local, np.full(j.n_active, len(j.touched), np.int32)]
-            parts.append((row, local, c.factor_size()))
+            parts.append((row, local, c.factor_size(j)))
         sizes = np.array([d for *_, d in parts])
         y_offset = np.r_[0, np.cumsum(sizes)]
         q_offset = np.r_[0, np.cumsum(sizes ** 2)][:-1]
