@@ -19,8 +19,8 @@ and the contact-force error between the two, in one run on this machine.
                   450-500 constraint rows (the press's approach, its default, the wide alarm).
     Gauss-Seidel  the frictional problems of the 450-row run (every 8th step with ≥ 420 rows),
                   solved again with sweep caps 1, 2, 4, ... 512 by plain and by Anderson-accelerated
-                  Gauss-Seidel: natural-map residual against sweeps and against time
-                  (figures/contact_gauss_seidel.png).
+                  Gauss-Seidel, and by Anderson on the contacts in play alone (`reduce`):
+                  natural-map residual against sweeps and against time (figures/contact_gauss_seidel.png).
     liver_floor   SOFA's contact scene of REFERENCE-TIMINGS.md: the 596-tet liver falls on a rigid
                   floor, μ 0.5, about 28 contacts at rest (SOFA: 1.79 ms/step warped, 5.95 exact)
 
@@ -42,6 +42,7 @@ STAGES = ("detection", "constraints", "compliance", "lcp", "correction")
 WIDE_DISTANCE = 4e-3     # m: liver_press's alarm distance widened to about 450 rows
 BANDS = {"~100": (50, 170), "~250": (200, 300), "450-500": (420, 520)}   # constraint rows
 CAPS = [2 ** k for k in range(10)]                                      # Gauss-Seidel sweep caps
+GS_VARIANTS = (("plain", False, False), ("anderson", True, False), ("anderson, in play", True, True))  # (Anderson, reduce)
 
 
 class LaunchCounter:
@@ -251,15 +252,17 @@ def row_bands(*runs) -> dict:
 
 
 def gauss_seidel_curves(problems) -> dict:
-    """Residual and time against the sweep cap, plain and Anderson-accelerated Gauss-Seidel, on the
-    stage's own (scaled) problems with their warm starts; medians over the problems."""
+    """Residual and time against the sweep cap, plain and Anderson-accelerated Gauss-Seidel, and
+    Anderson on the contacts in play (`reduce`), on the stage's own (scaled) problems with their
+    warm starts; medians over the problems."""
     from tissue.contact.frictional_contact import ANDERSON_WINDOW, FrictionalContactSolver
 
     out = {}
-    for name, window in (("plain", 0), ("anderson", ANDERSON_WINDOW)):
+    for name, window, reduce in GS_VARIANTS:
+        window = ANDERSON_WINDOW if window else 0
         res, ms, its = [], [], []
         for W, q, mu, r0 in problems:
-            solver = FrictionalContactSolver(W, mu, anderson=window, check=False)
+            solver = FrictionalContactSolver(W, mu, anderson=window, check=False, reduce=reduce)
             solver.solve(q, 1e-6, 1, r0=r0)                       # compile and warm up
             row = [min((solver.solve(q, 1e-12, cap, r0=r0)[1] for _ in range(3)), key=lambda i: i.time_s)
                    for cap in CAPS]
@@ -281,7 +284,7 @@ def plot_gauss_seidel(curves: dict) -> None:
     from bench.common import FIGURES
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
-    for name, style in (("plain", "o-"), ("anderson", "s-")):
+    for (name, *_), style in zip(GS_VARIANTS, ("o-", "s-", "^-")):
         c = curves[name]
         label = f"{name} (to 1e-6: {c['sweeps_to_1e-6']['median']:.0f} sweeps, median)"
         axes[0].loglog(c["caps"], c["residual"], style, label=label, ms=3)
@@ -392,7 +395,7 @@ def main(argv=None) -> int:
         curves = gauss_seidel_curves(problems)
         out["gauss_seidel"] = curves
         plot_gauss_seidel(curves)
-        for name in ("plain", "anderson"):
+        for name, *_ in GS_VARIANTS:
             c = curves[name]
             print(f"Gauss-Seidel {name}: sweeps to 1e-6 median {c['sweeps_to_1e-6']['median']:.0f} (max "
                   f"{c['sweeps_to_1e-6']['max']}); residual after {CAPS[-4]} sweeps {c['residual'][-4]:.1e} in "

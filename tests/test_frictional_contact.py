@@ -340,6 +340,32 @@ def test_factored_delassus_matches_dense(solve, method):
     np.testing.assert_allclose(rf, rd, atol=10 * tol * (1 + np.linalg.norm(q)))
 
 
+@pytest.mark.parametrize("layout", ["factored", "dense"])
+def test_contacts_in_play_solve_the_whole_problem(solve, layout):
+    """Most contacts apart (q_n > 0), as within an alarm distance: Gauss-Seidel on the contacts in
+    play (W among them formed from the factors) against sweeps over the whole problem, and
+    against W formed here: the same solution, an independent residual ≤ tol, apart contacts
+    carrying nothing."""
+    from tissue.contact import FrictionalContactSolver
+
+    rng = np.random.default_rng(6)
+    W, F, q, mu = two_body_factored_problem(150, 80, rng)
+    q[0::3] = np.where(rng.random(150) < 0.12, -rng.random(150), 0.05 + rng.random(150))
+    idx = np.flatnonzero(rng.random(150) < 0.2)
+    dofs = (3 * idx[:, None] + np.arange(3)).ravel()
+    assert np.linalg.norm(F.restricted(idx) - W[np.ix_(dofs, dofs)]) <= 1e-12 * np.linalg.norm(W)
+    op = F if layout == "factored" else W
+    tol = 1e-9
+    results = {}
+    for reduce in (True, False):
+        r, info = FrictionalContactSolver(op, mu, reduce=reduce).solve(q, tol=tol, max_iterations=5000)
+        assert info.converged and natural_map(W, q, mu, r) <= tol
+        results[reduce] = r
+    np.testing.assert_allclose(results[True], results[False], atol=10 * tol * (1 + np.linalg.norm(q)))
+    apart = (W @ results[True] + q)[0::3] > 1e-9
+    assert apart.sum() > 100 and np.all(results[True].reshape(-1, 3)[apart] == 0)
+
+
 def test_jacobi_safeguard_recovers_from_too_large_omega(solve):
     from tissue.contact import FrictionalContactSolver
     W, q, mu = rigid_bodies_problem(3, 30, np.random.default_rng(0))   # strongly coupled contacts
