@@ -29,11 +29,13 @@ $(STAMP): setup.cfg pyproject.toml
 demo: setup
 	$(VENV)/bin/tissue run liver --out figures/liver
 
+# One pytest worker per core (pytest-xdist), a test file per worker: compiling kernels, most of
+# a cold run, is single-threaded.
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 test-all: setup
-	$(PY) -m pytest -q -m ""
+	$(PY) -m pytest -q -n auto --dist loadfile -m ""
 
 bench: setup
 	$(PY) -m bench.deformation

@@ -1,5 +1,6 @@
 """Taichi is initialised once per test session (CPU, float64 unless TISSUE_ARCH says otherwise);
-the offline cache stays on so the suite does not spend its time compiling."""
+the offline cache stays on so the suite does not spend its time compiling. `make test` runs a
+session per core (pytest-xdist, a test file per worker), so session fixtures are per worker."""
 
 import os
 
