@@ -14,7 +14,9 @@ and the contact-force error between the two, in one run on this machine.
                   rows (LU of this step's matrix, solves, H A⁻¹ Hᵀ) against W by warping, formed
                   densely (the paper's kernels) and as the stage keeps it (its factors), ms and
                   ratios, and the force error there; then the run again with W formed
-                  (contact.delassus=dense): the stages side by side.
+                  (contact.delassus=dense): the stages side by side; and the run twice more,
+                  stepped alternately, Gauss-Seidel on the contacts in play (default) against
+                  always on the whole problem.
     row bands     per stage, the medians over the steps of both runs above with about 100 (50-170), 250 and
                   450-500 constraint rows (the press's approach, its default, the wide alarm).
     Gauss-Seidel  the frictional problems of the 450-row run (every 8th step with ≥ 420 rows),
@@ -237,6 +239,35 @@ def _collect(sim, steps: int, min_rows: int, skip=()) -> dict:
             "per_step": per_step}
 
 
+def reduce_side_by_side(steps: int, min_rows: int = 420) -> dict:
+    """The 450-row press twice, stepped alternately in this process: Gauss-Seidel on the contacts
+    in play after a step of many sweeps (the stage's default, pipeline.REDUCE_ABOVE) against
+    always on the whole problem. LCP ms, sweeps and residual, medians over the steps with at least
+    `min_rows` rows in both runs."""
+    import tissue.contact.pipeline as pipeline
+
+    default = pipeline.REDUCE_ABOVE
+    runs = {"in play": default, "whole": 10 ** 9}
+    sims = {name: press("warped", [f"contact.distance={WIDE_DISTANCE}"]) for name in runs}
+    try:
+        for _ in range(steps):
+            for name, sim in sims.items():
+                pipeline.REDUCE_ABOVE = runs[name]
+                sim.step()
+    finally:
+        pipeline.REDUCE_ABOVE = default
+    stats = {name: contact_stage(sim).stats for name, sim in sims.items()}
+    keep = np.ones(steps, bool)
+    for st in stats.values():
+        keep &= np.array(st.history["rows"]) >= min_rows
+    out = {"steps": int(keep.sum())}
+    for name, st in stats.items():
+        out[name] = {"lcp_ms": 1e3 * float(np.median(np.array(st.times["lcp"])[keep])),
+                     "sweeps": float(np.median(np.array(st.history["gs_iterations"])[keep])),
+                     "residual_max": float(np.max(np.array(st.history["gs_residual"])[keep]))}
+    return out
+
+
 def row_bands(*runs) -> dict:
     """Per stage, the median ms over the steps of `runs` whose row count falls in each band."""
     steps = {k: np.concatenate([r["per_step"][k] for r in runs]) for k in runs[0]["per_step"]}
@@ -383,6 +414,12 @@ def main(argv=None) -> int:
         out["exact_over_warped_450_rows"] = {"factors": exact_ms / f["compliance"], "dense_W": exact_ms / d["compliance"]}
         print(f"exact W ({exact_ms:.0f} ms) / the warped compliance stage: factors {exact_ms / f['compliance']:.0f}x, "
               f"W formed {exact_ms / d['compliance']:.0f}x")
+
+    ab = reduce_side_by_side(72)
+    out["liver_press_450_rows_in_play"] = ab
+    print(f"Gauss-Seidel at ≥ 420 rows, two runs stepped alternately ({ab['steps']} steps): on the contacts in play "
+          f"(default) {ab['in play']['lcp_ms']:.2f} ms, {ab['in play']['sweeps']:.0f} sweeps; always on the whole "
+          f"problem {ab['whole']['lcp_ms']:.2f} ms, {ab['whole']['sweeps']:.0f} sweeps (median lcp stage)")
 
     bands = row_bands(press_results["warped"], wide)
     out["row_bands"] = bands
