@@ -763,6 +763,41 @@ def test_moving_probe_pushes_and_surface_sampling_stops_it(coarse_block, samplin
         assert push[-1] > push[15] > 0
 
 
+def test_stage_in_play_gauss_seidel_matches_whole_problem(coarse_block, monkeypatch):
+    """The probe pushing the face-sampled block (most contacts within the alarm distance apart):
+    the stage solving on the contacts in play from its second step on (REDUCE_ABOVE = 0) against
+    always on the whole problem. Reference: the whole-problem run; the same push at every step
+    (to 1e-6 of it: both solve to 1e-10), and the in-play path really taken."""
+    import tissue.contact.frictional_contact as fc
+    import tissue.contact.pipeline as pipeline
+    from tissue.contact.obstacles import RigidObstacle, Sphere
+
+    radius, speed = 0.015, 0.05
+    pushes, restricted = {}, []
+    original = fc.FrictionalContactSolver._restricted
+    monkeypatch.setattr(fc.FrictionalContactSolver, "_restricted",
+                        lambda self, c, dofs: restricted.append(len(c)) or original(self, c, dofs))
+    for above in (0, 10 ** 9):
+        monkeypatch.setattr(pipeline, "REDUCE_ABOVE", above)
+        solver = reset(coarse_block)
+        probe = RigidObstacle(Sphere((0, 0, 0), radius), motion=lambda t: (0.0, 0.0, 0.05 + radius + 1e-3 - speed * t),
+                              friction=0.2)
+        stage = pipeline.ContactStage([solver], [probe], pipeline.ContactSettings(
+            contact_distance=3e-3, tolerance=1e-10, sampling="faces", max_iterations=1000))
+        pushes[above] = []
+        for _ in range(22):
+            solver.step()
+            r = stage.step()
+            assert r.info is None or r.info.converged
+            pushes[above].append(-r.contact_forces[:, 2].sum())
+        if above == 0:
+            assert restricted and max(restricted) < len(r.contacts) / 2
+            calls = len(restricted)
+    assert len(restricted) == calls                     # none in the whole-problem run
+    np.testing.assert_allclose(pushes[0], pushes[10 ** 9], rtol=0, atol=1e-6 * max(pushes[10 ** 9]))
+    assert pushes[0][-1] > 0
+
+
 def test_contact_settings_and_stage_validation(damped_block, cantilever):
     from tissue.contact.constraints import Attachment
     from tissue.contact.obstacles import Plane, RigidObstacle
