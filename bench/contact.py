@@ -44,7 +44,7 @@ STAGES = ("detection", "constraints", "compliance", "lcp", "correction")
 WIDE_DISTANCE = 4e-3     # m: liver_press's alarm distance widened to about 450 rows
 BANDS = {"~100": (50, 170), "~250": (200, 300), "450-500": (420, 520)}   # constraint rows
 CAPS = [2 ** k for k in range(10)]                                      # Gauss-Seidel sweep caps
-GS_VARIANTS = (("plain", False, False), ("anderson", True, False), ("anderson, in play", True, True))  # (Anderson, reduce)
+GS_VARIANTS = (("plain", False, False), ("anderson", True, False), ("anderson, in play", True, True))  # (name, Anderson, reduce)
 
 
 class LaunchCounter:
@@ -289,11 +289,11 @@ def gauss_seidel_curves(problems) -> dict:
     from tissue.contact.frictional_contact import ANDERSON_WINDOW, FrictionalContactSolver
 
     out = {}
-    for name, window, reduce in GS_VARIANTS:
-        window = ANDERSON_WINDOW if window else 0
+    for name, anderson, reduce in GS_VARIANTS:
         res, ms, its = [], [], []
         for W, q, mu, r0 in problems:
-            solver = FrictionalContactSolver(W, mu, anderson=window, check=False, reduce=reduce)
+            solver = FrictionalContactSolver(W, mu, anderson=ANDERSON_WINDOW if anderson else 0, check=False,
+                                             reduce=reduce)
             solver.solve(q, 1e-6, 1, r0=r0)                       # compile and warm up
             row = [min((solver.solve(q, 1e-12, cap, r0=r0)[1] for _ in range(3)), key=lambda i: i.time_s)
                    for cap in CAPS]

@@ -29,10 +29,9 @@ Methods:
     residual checks a sweep passes over the contacts that carry nothing and were apart (u_n > 0)
     when last solved, but for every REVISIT_EVERY-th sweep: the check sees them all again, so the
     stopping rule is unchanged, and most contacts within an alarm distance never touch (the
-    pressed liver: ~140 of ~155). Hence also
-    `reduce`: while at most half the contacts are in play (pushed or touching), the sweeps run on
-    W among those alone, formed densely (FrictionalContactSolver._gauss_seidel); it pays on
-    problems that need more than a few dozen sweeps.
+    pressed liver: ~140 of ~155). Hence also `reduce`: while at most half the contacts are in
+    play (pushed or touching), the sweeps run on W among those alone, formed densely
+    (FrictionalContactSolver._gauss_seidel); it pays on problems that need many sweeps.
     Anderson acceleration (`anderson` > 0, default ANDERSON_WINDOW): a sweep is a fixed-point map
     r <- G(r); after each sweep the next start is the combination of the last `anderson` + 1 sweeps'
     results whose residuals G(r) - r combine to the least norm (type II, Walker & Ni 2011),
@@ -162,8 +161,12 @@ class FactoredDelassus:
         """[ptr | col | segment | y_offset | q_offset], int32: the kernels' index argument."""
         return np.concatenate([self.ptr, self.col, self.segment, self.y_offset, self.q_offset]).astype(np.int32)
 
+    def _block_rows(self) -> np.ndarray:
+        """The contact of each block."""
+        return np.repeat(np.arange(self.n), np.diff(self.ptr))
+
     def _P(self) -> sp.csr_matrix:
-        rows = np.repeat(np.arange(self.n), np.diff(self.ptr))
+        rows = self._block_rows()
         r = np.broadcast_to((3 * rows)[:, None, None] + np.arange(3)[:, None], self.blocks.shape)
         c = np.broadcast_to(np.asarray(self.col)[:, None, None] + np.arange(3), self.blocks.shape)
         return sp.csr_matrix((self.blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * self.n, self.y_offset[-1]))
@@ -177,7 +180,7 @@ class FactoredDelassus:
         """W r from the factors: z = Pᵀ r (the blocks of contacts with r ≠ 0), y = Q z per
         segment (the columns of Q where z ≠ 0), then P y."""
         R = np.asarray(r, dtype=np.float64).reshape(-1, 3)
-        row = np.repeat(np.arange(self.n), np.diff(self.ptr))
+        row = self._block_rows()
         dofs = self.col[:, None] + np.arange(3)
         pushed = np.flatnonzero(R[row].any(axis=1))
         z = np.bincount(dofs[pushed].ravel(), np.einsum("eab,ea->eb", self.blocks[pushed], R[row[pushed]]).ravel(),
@@ -912,7 +915,7 @@ class FrictionalContactSolver:
         """W among `contacts` (their `dofs`), dense."""
         if self.layout == FACTORED:
             return self.W.restricted(contacts)
-        if self.layout == CSR:
+        if sp.issparse(self.W):                     # (also a small sparse W held densely)
             return self.W[dofs][:, dofs].toarray()
         return self.W[np.ix_(dofs, dofs)]
 
