@@ -1,21 +1,21 @@
-"""The co-rotated stiffness Σ R Kₑ Rᵀ assembled once per step into 3×3 blocks, in two layouts.
+"""The co-rotated stiffness Σ R Kₑ Rᵀ assembled once per step into 3×3 blocks, for CG products.
 
-Beyond the paper's matrix-free product: a CG iteration then costs one block product per
-neighbour pair (about 11-15 blocks per node) instead of re-deriving every element's stress from
-strain (about 5.5 elements per node, each ~140 multiply-adds plus a scatter and a gather),
-roughly 3× less arithmetic and traffic per iteration for one assembly per step.
+The paper's CG recomputes every element's product in every iteration. Assembling the rotated
+blocks once per step costs about two such products; each iteration then reads ~15 blocks per node
+instead of redoing the element arithmetic.
 
-    R Kₐᵦ Rᵀ = V (λ ĥₐ ĥᵦᵀ + μ ĥᵦ ĥₐᵀ + μ (gₐ·gᵦ) I),   ĥ = R g,  g = ∇N (rest shape)
-
-  BlockRows        full rows (block CSR), for parallel execution: each row is assembled and
-                   multiplied by the node that owns it, reading its incident elements through
-                   the vertex index, so there are no write conflicts and the order is fixed.
+Two layouts, both over the model's capacity-sized arrays (`tissue.fem.model`), kept up to date by
+the model's topology edits:
+  BlockRows        full rows: each vertex sums the blocks of its incident elements into its own row
+                   (block-CSR), so the loop over vertices runs in parallel with no atomics and a
+                   fixed order. Its pattern is rebuilt after an edit.
   SymmetricBlocks  the diagonal and the upper triangle only, for one CPU thread: each element
                    adds its 10 distinct blocks once, and a product reads each off-diagonal block
-                   once for both of its rows (1.5× faster than full rows on the 600-tet liver).
+                   once for both of its rows. An edit appends the blocks of new node pairs.
 
-Both offer `assemble()` and `multiply(src)` (loops, called at kernel top level), then
-`product_row(v, src)` = (Σ R Kₑ Rᵀ src) at node v, `diagonal_block(v)` and `to_scipy()`.
+Both offer `assemble(m, w, a)` and `multiply(m, a, src)` (loops, called at kernel top level, with
+the model's pack `m`, the FEM's work `w` and the matrix's own pack `a`), then
+`product_row(a, v, src)` = (Σ R Kₑ Rᵀ src) at node v, `diagonal_block(a, v)`, and `to_scipy()`.
 """
 
 import numpy as np
@@ -23,19 +23,23 @@ import scipy.sparse as sp
 import taichi as ti
 
 from .. import backend
-from .corotational import CorotationalFEM, int_field
+from .model import BodyModel, Edit, real_numpy
 
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
 
+# counts[0]: blocks in use. Members a layout does not use hold one entry.
+BLOCKS = ti.types.argpack(counts=ti.types.ndarray(), gradients=ti.types.ndarray(), rotated=ti.types.ndarray(),
+                          slots=ti.types.ndarray(), index=ti.types.ndarray(), offsets=ti.types.ndarray(),
+                          blocks=ti.types.ndarray(), diagonal=ti.types.ndarray(), product=ti.types.ndarray())
 
-def real_bytes(real) -> int:
-    return 8 if real == ti.f64 else 4
+
+def real_bytes() -> int:
+    return 8 if backend.current().precision == "f64" else 4
 
 
-def shape_gradients(fem: CorotationalFEM) -> np.ndarray:
+def shape_gradients(Dm_inv: np.ndarray) -> np.ndarray:
     """Rest-shape gradients ∇N of the 4 corners of each element, as columns (m, 3, 4)."""
-    inv = fem.Dm_inv.to_numpy().astype(np.float64)
-    return np.concatenate([-inv.sum(axis=1)[:, :, None], inv.transpose(0, 2, 1)], axis=2)
+    return np.concatenate([-Dm_inv.sum(axis=1)[:, :, None], Dm_inv.transpose(0, 2, 1)], axis=2)
 
 
 @ti.func
@@ -49,163 +53,259 @@ def pair_block(lam, mu, ga, gb, ha, hb):
     return (lam * ha).outer_product(hb) + (mu * hb).outer_product(ha) + mu * ga.dot(gb) * ti.Matrix.identity(float, 3)
 
 
-def block_pattern(tets: np.ndarray, n_points: int, incidence: np.ndarray):
-    """Block-CSR pattern of the node graph, and for each incidence entry (vertex v, element
-    corner 4e+a) the slots of the blocks (v, tₑ[b]), b = 0..3."""
-    rows = np.repeat(tets, 4, axis=1).reshape(-1).astype(np.int64)
-    cols = np.tile(tets, (1, 4)).reshape(-1).astype(np.int64)
-    keys = np.unique(rows * n_points + cols)
-    offsets = np.zeros(n_points + 1, dtype=np.int32)
-    np.cumsum(np.bincount(keys // n_points, minlength=n_points), out=offsets[1:])
-    columns = (keys % n_points).astype(np.int32)
-    element, corner = incidence // 4, incidence % 4
-    v = tets[element, corner].astype(np.int64)
-    slots = np.searchsorted(keys, v[:, None] * n_points + tets[element].astype(np.int64))
-    diagonal = np.searchsorted(keys, np.arange(n_points, dtype=np.int64) * (n_points + 1))
-    return offsets, columns, slots.astype(np.int32), diagonal.astype(np.int32)
+class _Blocks:
+    """What both layouts share: the model, its gradients, the pack and the re-allocation."""
+
+    def __init__(self, model: BodyModel):
+        self.model = model
+        self._version = None
+        self.resize()
+        model.subscribe(self)
+
+    def resize(self) -> bool:
+        if self._version == self.model.version:
+            return False
+        self._allocate()
+        self._version = self.model.version
+        return True
+
+    def _types(self):
+        real = backend.current().real
+        return ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.matrix(3, 4, real)
+
+    def _upload_gradients(self) -> None:
+        gradients = np.zeros((self.model.element_capacity, 3, 4), dtype=real_numpy())
+        gradients[:self.model.n_elements] = shape_gradients(self.model.Dm_inv)
+        self.arrays["gradients"].from_numpy(gradients)
+
+    def _pack(self, **arrays) -> None:
+        one = dict(rotated=(ti.i32, 1), slots=(ti.i32, 1), index=(ti.i32, 1), offsets=(ti.i32, 1),
+                   diagonal=(ti.i32, 1), product=(ti.i32, 1))
+        for name, (dtype, shape) in one.items():
+            arrays.setdefault(name, ti.ndarray(dtype, shape))
+        self.arrays = arrays
+        self.pack = BLOCKS(**arrays)
 
 
-@ti.data_oriented
-class BlockRows:
+class BlockRows(_Blocks):
     """Full block rows of Σ R Kₑ Rᵀ, re-assembled from the FEM's rotations (parallel-safe)."""
 
-    def __init__(self, fem: CorotationalFEM):
-        self.fem = fem
-        n, real = fem.n_nodes, fem.R.dtype
-        offsets, columns, slots, diagonal = block_pattern(fem.mesh.tets, n, fem.incidence.to_numpy())
-        gradients = shape_gradients(fem)
-        self.n_blocks = len(columns)
-        with backend.fields_of(self):
-            self.gradients = ti.Matrix.field(3, 4, real, fem.n_elements)
-            self.rotated = ti.Matrix.field(3, 4, real, fem.n_elements)   # R ∇N, once per step
-            self.row_offsets = int_field(n + 1)
-            self.columns = int_field(self.n_blocks)
-            self.slots = int_field(len(slots), 4)
-            self.diagonal_slot = int_field(n)
-            self.blocks = ti.Matrix.field(3, 3, real, self.n_blocks)
-        self.gradients.from_numpy(gradients)
-        self.row_offsets.from_numpy(offsets)
-        self.columns.from_numpy(columns)
-        self.slots.from_numpy(slots)
-        self.diagonal_slot.from_numpy(diagonal)
-        # Bytes a product reads from the matrix: blocks, column ids, row offsets.
-        self.nbytes = self.n_blocks * (9 * real_bytes(real) + 4) + 4 * (n + 1)
+    def _allocate(self) -> None:
+        vec3, mat3, mat34 = self._types()
+        model = self.model
+        self._pack(counts=ti.ndarray(ti.i32, 1), gradients=ti.ndarray(mat34, model.element_capacity),
+                   rotated=ti.ndarray(mat34, model.element_capacity),
+                   offsets=ti.ndarray(ti.i32, model.node_capacity + 1),
+                   diagonal=ti.ndarray(ti.i32, model.node_capacity),
+                   slots=ti.ndarray(ti.types.vector(4, ti.i32), model.incidence_capacity),
+                   blocks=ti.ndarray(mat3, 1), index=ti.ndarray(ti.i32, 1))
+        self._build()
 
-    @ti.func
-    def assemble(self):
-        fem = self.fem
-        for e in range(fem.n_elements):
-            self.rotated[e] = fem.R[e] @ self.gradients[e]
-        for v in range(fem.n_nodes):
-            for j in range(self.row_offsets[v], self.row_offsets[v + 1]):
-                self.blocks[j] = ti.Matrix.zero(float, 3, 3)
-            for k in range(fem.incidence_offsets[v], fem.incidence_offsets[v + 1]):
-                c = fem.incidence[k]
-                e, a = c // 4, c % 4
-                grads, rotated = self.gradients[e], self.rotated[e]
-                lam, mu = fem.volume[e] * fem.lame[e][0], fem.volume[e] * fem.lame[e][1]
-                ga, ha = column(grads, a), column(rotated, a)
-                for b in ti.static(range(4)):
-                    j = self.slots[k][b]  # a slot of row v: owned by this thread, so no atomic add
-                    self.blocks[j] = self.blocks[j] + pair_block(lam, mu, ga, column(grads, b), ha, column(rotated, b))
+    def topology_changed(self, edit: Edit) -> None:
+        self.resize()
+        self._build()
 
-    @ti.func
-    def multiply(self, src: ti.template()):
-        pass  # rows are multiplied on demand, by product_row
+    def _build(self) -> None:
+        """The block-CSR pattern of the node graph, and for each gather entry (node v, slot k of
+        its incidence row, corner 4 e + a) the block slots of (v, tₑ[b]), b = 0..3."""
+        model = self.model
+        n, tets = model.n_nodes, model.tets.astype(np.int64)
+        rows = np.repeat(tets, 4, axis=1).reshape(-1)
+        cols = np.tile(tets, (1, 4)).reshape(-1)
+        keys = np.unique(rows * n + cols)
+        offsets = np.zeros(model.node_capacity + 1, dtype=np.int32)
+        np.cumsum(np.bincount(keys // n, minlength=n), out=offsets[1:n + 1])
+        offsets[n + 1:] = offsets[n]
+        self.n_blocks = len(keys)
+        if self.arrays["blocks"].shape[0] < self.n_blocks:     # grows with the pattern, by doubling
+            size = max(self.n_blocks, 2 * self.arrays["blocks"].shape[0])
+            self.arrays["blocks"] = ti.ndarray(self._types()[1], size)
+            self.arrays["index"] = ti.ndarray(ti.i32, size)
+            self.pack = BLOCKS(**self.arrays)
+        columns = np.zeros(self.arrays["index"].shape[0], dtype=np.int32)
+        columns[:len(keys)] = keys % n
+        code = model.incidence_rows                     # (capacity, slots) corner codes, −1 unused
+        used = code[:n] >= 0
+        node = np.broadcast_to(np.arange(n)[:, None], used.shape)[used]
+        element = code[:n][used] // 4
+        slots = np.zeros((model.incidence_capacity, 4), dtype=np.int32)
+        flat = np.flatnonzero(used.reshape(-1))
+        slots[flat] = np.searchsorted(keys, node[:, None] * n + tets[element])
+        diagonal = np.zeros(model.node_capacity, dtype=np.int32)
+        diagonal[:n] = np.searchsorted(keys, np.arange(n, dtype=np.int64) * (n + 1))
+        self.arrays["counts"].from_numpy(np.array([self.n_blocks], dtype=np.int32))
+        self.arrays["offsets"].from_numpy(offsets)
+        self.arrays["index"].from_numpy(columns)
+        self.arrays["slots"].from_numpy(slots)
+        self.arrays["diagonal"].from_numpy(diagonal)
+        self._upload_gradients()
 
-    @ti.func
-    def product_row(self, v, src):
-        s = ti.Vector([0.0, 0.0, 0.0])
-        for j in range(self.row_offsets[v], self.row_offsets[v + 1]):
-            s += self.blocks[j] @ src[self.columns[j]]
-        return s
-
-    @ti.func
-    def diagonal_block(self, v):
-        return self.blocks[self.diagonal_slot[v]]
+    @property
+    def nbytes(self) -> int:
+        """Bytes a product reads from the matrix: blocks, column ids, row offsets."""
+        return self.n_blocks * (9 * real_bytes() + 4) + 4 * (self.model.n_nodes + 1)
 
     def to_scipy(self) -> sp.csr_matrix:
-        n3 = 3 * self.fem.n_nodes
-        return sp.bsr_matrix((self.blocks.to_numpy().astype(np.float64), self.columns.to_numpy(),
-                              self.row_offsets.to_numpy()), shape=(n3, n3)).tocsr()
+        n = self.model.n_nodes
+        offsets = self.arrays["offsets"].to_numpy()[:n + 1]
+        return sp.bsr_matrix((self.arrays["blocks"].to_numpy()[:self.n_blocks].astype(np.float64),
+                              self.arrays["index"].to_numpy()[:self.n_blocks], offsets),
+                             shape=(3 * n, 3 * n)).tocsr()
 
 
-@ti.data_oriented
-class SymmetricBlocks:
+@ti.func
+def rows_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
+    for e in range(m.counts[1]):
+        a.rotated[e] = w.R[e] @ a.gradients[e]
+    for v in range(m.counts[0]):
+        for j in range(a.offsets[v], a.offsets[v + 1]):
+            a.blocks[j] = ti.Matrix.zero(float, 3, 3)
+        for k in range(m.valence[v]):
+            c = m.incidence[v, k]
+            e, corner = c // 4, c % 4
+            grads, rotated = a.gradients[e], a.rotated[e]
+            lam, mu = m.elastic[e][0] * m.elastic[e][1], m.elastic[e][0] * m.elastic[e][2]
+            ga, ha = column(grads, corner), column(rotated, corner)
+            slots = a.slots[v * m.incidence.shape[1] + k]
+            for b in ti.static(range(4)):
+                j = slots[b]  # a slot of row v: owned by this thread, so no atomic add
+                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, ga, column(grads, b), ha, column(rotated, b))
+
+
+@ti.func
+def rows_product(a: ti.template(), v, src: ti.template()):
+    s = ti.Vector([0.0, 0.0, 0.0])
+    for j in range(a.offsets[v], a.offsets[v + 1]):
+        s += a.blocks[j] @ src[a.index[j]]
+    return s
+
+
+class SymmetricBlocks(_Blocks):
     """Diagonal and upper-triangle blocks of Σ R Kₑ Rᵀ, assembled element by element: for a
     single thread only (elements sharing a block would race in parallel)."""
 
-    def __init__(self, fem: CorotationalFEM):
-        self.fem = fem
-        n, m, real = fem.n_nodes, fem.n_elements, fem.R.dtype
-        tets = fem.mesh.tets.astype(np.int64)
+    def _allocate(self) -> None:
+        vec3, mat3, mat34 = self._types()
+        model = self.model
+        self._pack(counts=ti.ndarray(ti.i32, 1), gradients=ti.ndarray(mat34, model.element_capacity),
+                   slots=ti.ndarray(ti.types.vector(6, ti.i32), model.element_capacity),
+                   diagonal=ti.ndarray(mat3, model.node_capacity), product=ti.ndarray(vec3, model.node_capacity),
+                   index=ti.ndarray(ti.types.vector(2, ti.i32), 1), blocks=ti.ndarray(mat3, 1))
+        self._pairs: dict[tuple[int, int], int] | None = None
+        self._build()
+
+    def _build(self) -> None:
+        """Per element pair: its block's slot, doubled, plus 1 when corner b has the lower node
+        (the element then adds the transpose of its (a, b) block)."""
+        model = self.model
+        n, m, tets = model.n_nodes, model.n_elements, model.tets.astype(np.int64)
         a, b = np.array(PAIRS).T
         lo, hi = np.minimum(tets[:, a], tets[:, b]), np.maximum(tets[:, a], tets[:, b])
         keys, slot = np.unique(lo * n + hi, return_inverse=True)
-        self.n_blocks = len(keys) + n
-        # Per element pair: its block's slot, doubled, plus 1 when corner b has the lower node
-        # (the element then adds the transpose of its (a, b) block).
-        gradients = shape_gradients(fem)
-        with backend.fields_of(self):
-            self.pair_slots = int_field(m, 6)
-            self.upper_rows, self.upper_columns = int_field(len(keys)), int_field(len(keys))
-            self.gradients = ti.Matrix.field(3, 4, real, m)
-            self.upper = ti.Matrix.field(3, 3, real, len(keys))
-            self.diagonal = ti.Matrix.field(3, 3, real, n)
-            self.product = ti.Vector.field(3, real, n)
-        self.pair_slots.from_numpy((2 * slot.reshape(m, 6) + (tets[:, b] < tets[:, a])).astype(np.int32))
-        self.upper_rows.from_numpy((keys // n).astype(np.int32))
-        self.upper_columns.from_numpy((keys % n).astype(np.int32))
-        self.gradients.from_numpy(gradients)
-        # Bytes a product reads from the matrix: blocks and their row and column ids.
-        self.nbytes = len(keys) * (9 * real_bytes(real) + 8) + n * 9 * real_bytes(real)
+        self._upper = np.stack([keys // n, keys % n], axis=1).astype(np.int32)
+        self._slots = np.zeros((model.element_capacity, 6), dtype=np.int32)
+        self._slots[:m] = 2 * slot.reshape(m, 6) + (tets[:, b] < tets[:, a])
+        self._pairs = None                          # the key -> slot map, built on the first edit
+        self._upload_pattern()
+        self._upload_gradients()
 
-    @ti.func
-    def assemble(self):
-        fem = self.fem
-        for j in range(self.upper.shape[0]):
-            self.upper[j] = ti.Matrix.zero(float, 3, 3)
-        for v in range(fem.n_nodes):
-            self.diagonal[v] = ti.Matrix.zero(float, 3, 3)
-        for e in range(fem.n_elements):
-            t, grads = fem.tets[e], self.gradients[e]
-            rotated = fem.R[e] @ grads
-            lam, mu = fem.volume[e] * fem.lame[e][0], fem.volume[e] * fem.lame[e][1]
-            for a in ti.static(range(4)):
-                ga, ha = column(grads, a), column(rotated, a)
-                self.diagonal[t[a]] += pair_block(lam, mu, ga, ga, ha, ha)
-            for k in ti.static(range(6)):
-                a, b = PAIRS[k]
-                ga, ha, gb, hb = column(grads, a), column(rotated, a), column(grads, b), column(rotated, b)
-                code = self.pair_slots[e][k]
-                j = code // 2
-                if code % 2 == 0:
-                    self.upper[j] += pair_block(lam, mu, ga, gb, ha, hb)
-                else:
-                    self.upper[j] += pair_block(lam, mu, gb, ga, hb, ha)
+    def _upload_pattern(self) -> None:
+        count = len(self._upper)
+        if self.arrays["blocks"].shape[0] < count:   # grows with the pattern, by doubling
+            size = max(count, 2 * self.arrays["blocks"].shape[0])
+            self.arrays["blocks"] = ti.ndarray(self._types()[1], size)
+            self.arrays["index"] = ti.ndarray(ti.types.vector(2, ti.i32), size)
+            self.pack = BLOCKS(**self.arrays)
+        index = np.zeros((self.arrays["index"].shape[0], 2), dtype=np.int32)
+        index[:count] = self._upper
+        self.arrays["index"].from_numpy(index)
+        self.arrays["slots"].from_numpy(self._slots)
+        self.arrays["counts"].from_numpy(np.array([count], dtype=np.int32))
 
-    @ti.func
-    def multiply(self, src: ti.template()):
-        for v in range(self.fem.n_nodes):
-            self.product[v] = self.diagonal[v] @ src[v]
-        for j in range(self.upper.shape[0]):
-            r, c = self.upper_rows[j], self.upper_columns[j]
-            B = self.upper[j]
-            self.product[r] += B @ src[c]
-            self.product[c] += B.transpose() @ src[r]
+    def topology_changed(self, edit: Edit) -> None:
+        if self.resize():
+            return                                   # re-allocated: the pattern was rebuilt whole
+        if len(edit.moved_to):
+            self._slots[edit.moved_to] = self._slots[edit.moved_from]
+        if len(edit.added):
+            if self._pairs is None:
+                self._pairs = {(int(r), int(c)): j for j, (r, c) in enumerate(self._upper)}
+            tets = self.model.tets[edit.added]
+            new = []
+            for row, t in zip(edit.added, tets):
+                for k, (a, b) in enumerate(PAIRS):
+                    key = (min(t[a], t[b]), max(t[a], t[b]))
+                    j = self._pairs.get(key)
+                    if j is None:
+                        j = self._pairs[key] = len(self._upper) + len(new)
+                        new.append(key)
+                    self._slots[row, k] = 2 * j + (t[b] < t[a])
+            if new:
+                self._upper = np.concatenate([self._upper, np.array(new, dtype=np.int32)])
+            gradients = self.arrays["gradients"].to_numpy()
+            gradients[edit.added] = shape_gradients(self.model.Dm_inv[edit.added])
+            if len(edit.moved_to):
+                gradients[edit.moved_to] = gradients[edit.moved_from]
+            self.arrays["gradients"].from_numpy(gradients)
+        elif len(edit.moved_to):
+            self._upload_gradients()
+        self._upload_pattern()
 
-    @ti.func
-    def product_row(self, v, src):
-        return self.product[v]
+    @property
+    def n_blocks(self) -> int:
+        return len(self._upper) + self.model.n_nodes
 
-    @ti.func
-    def diagonal_block(self, v):
-        return self.diagonal[v]
+    @property
+    def nbytes(self) -> int:
+        """Bytes a product reads from the matrix: blocks and their row and column ids."""
+        return len(self._upper) * (9 * real_bytes() + 8) + self.model.n_nodes * 9 * real_bytes()
 
     def to_scipy(self) -> sp.csr_matrix:
-        n = self.fem.n_nodes
-        upper = sp.bsr_matrix((self.upper.to_numpy().astype(np.float64), self.upper_columns.to_numpy(),
-                               np.searchsorted(self.upper_rows.to_numpy(), np.arange(n + 1))), shape=(3 * n, 3 * n))
-        diagonal = sp.bsr_matrix((self.diagonal.to_numpy().astype(np.float64), np.arange(n), np.arange(n + 1)),
-                                 shape=(3 * n, 3 * n))
+        n, count = self.model.n_nodes, len(self._upper)
+        blocks = self.arrays["blocks"].to_numpy()[:count].astype(np.float64)
+        rows, cols = self._upper[:, 0], self._upper[:, 1]
+        dense_index = (3 * rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+        dense_col = (3 * cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+        upper = sp.coo_matrix((blocks.ravel(), (dense_index.ravel(), dense_col.ravel())), shape=(3 * n, 3 * n))
+        diagonal = sp.bsr_matrix((self.arrays["diagonal"].to_numpy()[:n].astype(np.float64), np.arange(n),
+                                  np.arange(n + 1)), shape=(3 * n, 3 * n))
         return (upper + upper.T + diagonal).tocsr()
+
+
+# One thread runs these two: read-modify-write, since `+=` on an ndarray stays an atomic (a
+# compare-and-swap loop for float64 on the CPU) even in a serial loop, where a field's is demoted.
+
+
+@ti.func
+def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
+    for j in range(a.counts[0]):
+        a.blocks[j] = ti.Matrix.zero(float, 3, 3)
+    for v in range(m.counts[0]):
+        a.diagonal[v] = ti.Matrix.zero(float, 3, 3)
+    for e in range(m.counts[1]):
+        t, grads = m.tets[e], a.gradients[e]
+        rotated = w.R[e] @ grads
+        lam, mu = m.elastic[e][0] * m.elastic[e][1], m.elastic[e][0] * m.elastic[e][2]
+        for c in ti.static(range(4)):
+            gc, hc = column(grads, c), column(rotated, c)
+            a.diagonal[t[c]] = a.diagonal[t[c]] + pair_block(lam, mu, gc, gc, hc, hc)
+        for k in ti.static(range(6)):
+            p, q = PAIRS[k]
+            gp, hp, gq, hq = column(grads, p), column(rotated, p), column(grads, q), column(rotated, q)
+            code = a.slots[e][k]
+            j = code // 2
+            if code % 2 == 0:
+                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gp, gq, hp, hq)
+            else:
+                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gq, gp, hq, hp)
+
+
+@ti.func
+def symmetric_multiply(m: ti.template(), a: ti.template(), src: ti.template()):
+    for v in range(m.counts[0]):
+        a.product[v] = a.diagonal[v] @ src[v]
+    for j in range(a.counts[0]):
+        r, c = a.index[j][0], a.index[j][1]
+        B = a.blocks[j]
+        a.product[r] = a.product[r] + B @ src[c]
+        a.product[c] = a.product[c] + B.transpose() @ src[r]

@@ -21,6 +21,12 @@ from .. import backend
 from ..errors import TissueError
 from ..mesh import TetMesh
 from .material import Material
+from .model import MODEL, BodyModel, real_numpy
+
+# The per-step work of the FEM: element rotations, the inverted-element count, and the gather
+# buffer (4 per element) or the atomic accumulator (per node), whichever the accumulation uses.
+FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), inverted=ti.types.ndarray(), buffer=ti.types.ndarray(),
+                            accumulator=ti.types.ndarray())
 
 ROTATIONS = ("large", "polar", "linear")
 ACCUMULATIONS = ("gather", "atomic", "colouring")
@@ -105,15 +111,15 @@ def polar_rotation(F, tol):
 
 
 @ti.func
-def nodal_rotation(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), v, tol):
+def nodal_rotation(Re: ti.template(), valence: ti.template(), incidence: ti.template(), v, tol):
     """The orthonormalised average of the rotations of the elements around node v: the rotation
     of the polar decomposition of their mean X₀. Newton–Schulz, X ← X (3I - XᵀX) / 2, converges
     to it quadratically when the rotations are alike (X₀ nearly orthogonal: a few 3×3 products);
     otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM."""
     X = ti.Matrix.zero(float, 3, 3)
-    for k in range(offsets[v], offsets[v + 1]):
-        X += Re[incidence[k] // 4]
-    S = X / ti.max(offsets[v + 1] - offsets[v], 1)
+    for k in range(valence[v]):
+        X += Re[incidence[v, k] // 4]
+    S = X / ti.max(valence[v], 1)
     X = S
     done = False
     if S.determinant() > 0.0:
@@ -131,285 +137,312 @@ def nodal_rotation(Re: ti.template(), offsets: ti.template(), incidence: ti.temp
     return X
 
 
-@ti.data_oriented
-class CorotationalFEM:
-    """The elastic part of one soft body: rest data, rotations, forces and stiffness products.
+# ---- per-element mathematics, over a model's argpack `m` (tissue.fem.model) and the FEM's work `w`
 
-    The Taichi functions here are meant to be called from the kernels of a solver (see
-    `tissue.solver.ImplicitEuler`); the `*_numpy` methods launch them alone, for tests and tools.
+
+@ti.func
+def deformation_gradient(m: ti.template(), e, x: ti.template()):
+    t = m.tets[e]
+    Ds = ti.Matrix.cols([x[t[1]] - x[t[0]], x[t[2]] - x[t[0]], x[t[3]] - x[t[0]]])
+    return Ds @ m.Dm_inv[e]
+
+
+@ti.func
+def element_rotation(m: ti.template(), e, x: ti.template(), rotation: ti.template(), tol):
+    R = ti.Matrix.identity(float, 3)
+    if ti.static(rotation == "large"):
+        t = m.tets[e]
+        R = edge_frame(x[t[0]], x[t[1]], x[t[2]]) @ m.rest_frame[e].transpose()
+    elif ti.static(rotation == "polar"):
+        F = deformation_gradient(m, e, x)
+        if ti.abs(F.determinant()) > 1e-6:
+            R = polar_rotation(F, tol)
+        else:  # (nearly) flat element: the edge frame is still well defined
+            t = m.tets[e]
+            R = edge_frame(x[t[0]], x[t[1]], x[t[2]]) @ m.rest_frame[e].transpose()
+    return R
+
+
+@ti.func
+def linear_stress(m: ti.template(), e, G):
+    """σ of the symmetric part of the displacement gradient G (linear isotropic)."""
+    lam, mu = m.elastic[e][1], m.elastic[e][2]
+    eps = 0.5 * (G + G.transpose())
+    return 2.0 * mu * eps + lam * eps.trace() * ti.Matrix.identity(float, 3)
+
+
+@ti.func
+def nodal_forces(m: ti.template(), R, e, G):
+    """Forces (columns 1..3; node 0 balances them) of the linear stress of the displacement
+    gradient G, given in the element's rotated frame: f = -V R σ(sym G) ∇N."""
+    return -m.elastic[e][0] * R @ linear_stress(m, e, G) @ m.Dm_inv[e].transpose()
+
+
+@ti.func
+def elastic_force(m: ti.template(), w: ti.template(), e, x: ti.template()):
+    """-R Kₑ (Rᵀ x - X) on the element's nodes, as a 3×3 (nodes 1..3; node 0 = -sum)."""
+    R = w.R[e]
+    G = R.transpose() @ deformation_gradient(m, e, x) - ti.Matrix.identity(float, 3)
+    return nodal_forces(m, R, e, G)
+
+
+@ti.func
+def stiffness_product(m: ti.template(), w: ti.template(), e, p: ti.template()):
+    """-R Kₑ Rᵀ p on the element's nodes (the tangent stiffness times p, with its sign)."""
+    R = w.R[e]
+    return nodal_forces(m, R, e, R.transpose() @ deformation_gradient(m, e, p))
+
+
+@ti.func
+def diagonal_block(m: ti.template(), w: ti.template(), e, corner):
+    """The element's 3×3 stiffness block R Kₐₐ Rᵀ of one corner (for block-Jacobi)."""
+    Dt = m.Dm_inv[e].transpose()
+    g = ti.Vector([0.0, 0.0, 0.0])
+    if corner == 0:
+        g = -(ti.Vector([Dt[0, 0], Dt[1, 0], Dt[2, 0]]) + ti.Vector([Dt[0, 1], Dt[1, 1], Dt[2, 1]])
+              + ti.Vector([Dt[0, 2], Dt[1, 2], Dt[2, 2]]))
+    else:
+        g = ti.Vector([Dt[0, corner - 1], Dt[1, corner - 1], Dt[2, corner - 1]])
+    V, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
+    K = V * ((lam + mu) * g.outer_product(g) + mu * g.dot(g) * ti.Matrix.identity(float, 3))
+    return w.R[e] @ K @ w.R[e].transpose()
+
+
+# ---- loops (parallel when called at kernel top level) ----------------------------------------
+
+
+@ti.func
+def update_rotations(m: ti.template(), w: ti.template(), x: ti.template(), rotation: ti.template(), tol):
+    """Element rotations at x, and the count of inverted elements (det F ≤ 0): linear
+    co-rotational elements have no inversion barrier, so a caller should hear of them."""
+    w.inverted[0] = 0
+    for e in range(m.counts[1]):
+        w.R[e] = element_rotation(m, e, x, rotation, tol)
+        t = m.tets[e]
+        if (x[t[1]] - x[t[0]]).dot((x[t[2]] - x[t[0]]).cross(x[t[3]] - x[t[0]])) <= 0:
+            w.inverted[0] += 1
+
+
+@ti.func
+def _deposit(m: ti.template(), w: ti.template(), e, H, accumulation: ti.template()):
+    """Hand the element's nodal vectors (H: nodes 1..3 as columns) to the accumulation."""
+    t = m.tets[e]
+    f0 = -(ti.Vector([H[0, 0], H[1, 0], H[2, 0]]) + ti.Vector([H[0, 1], H[1, 1], H[2, 1]])
+           + ti.Vector([H[0, 2], H[1, 2], H[2, 2]]))
+    if ti.static(accumulation == "gather"):
+        w.buffer[4 * e] = f0
+        for a in ti.static(range(3)):
+            w.buffer[4 * e + a + 1] = ti.Vector([H[0, a], H[1, a], H[2, a]])
+    elif ti.static(accumulation == "atomic"):
+        w.accumulator[t[0]] += f0
+        for a in ti.static(range(3)):
+            w.accumulator[t[a + 1]] += ti.Vector([H[0, a], H[1, a], H[2, a]])
+    else:  # colouring: no two elements of a colour share a node, plain writes are safe
+        w.accumulator[t[0]] = w.accumulator[t[0]] + f0
+        for a in ti.static(range(3)):
+            w.accumulator[t[a + 1]] = w.accumulator[t[a + 1]] + ti.Vector([H[0, a], H[1, a], H[2, a]])
+
+
+@ti.func
+def scatter_element(m: ti.template(), w: ti.template(), what: ti.template(), e, src: ti.template(),
+                    accumulation: ti.template()):
+    """One element's part of `what` ("force": elastic forces at positions src; "stiffness":
+    tangent stiffness times src), handed to the accumulation."""
+    H = ti.Matrix.zero(float, 3, 3)
+    if ti.static(what == "force"):
+        H = elastic_force(m, w, e, src)
+    else:
+        H = stiffness_product(m, w, e, src)
+    _deposit(m, w, e, H, accumulation)
+
+
+@ti.func
+def scatter(m: ti.template(), w: ti.template(), what: ti.template(), src: ti.template(), accumulation: ti.template()):
+    """Element stage of `what`; its nodal sums are then read with `gathered(v)`.
+    Colouring is not fused here: it needs a launch per colour (see `scatter_launch`)."""
+    ti.static_assert(accumulation != "colouring")
+    for e in range(m.counts[1]):
+        scatter_element(m, w, what, e, src, accumulation)
+
+
+@ti.func
+def gathered(m: ti.template(), w: ti.template(), v, accumulation: ti.template()):
+    """The nodal sum of the last scatter at vertex v (read once: atomic/colouring reset it)."""
+    s = ti.Vector([0.0, 0.0, 0.0])
+    if ti.static(accumulation == "gather"):
+        for k in range(m.valence[v]):
+            s += w.buffer[m.incidence[v, k]]
+    else:
+        s = w.accumulator[v]
+        w.accumulator[v] = ti.Vector([0.0, 0.0, 0.0])
+    return s
+
+
+@ti.func
+def stiffness_diagonal(m: ti.template(), w: ti.template(), v):
+    """Σ over incident elements of R Kₐₐ Rᵀ at vertex v."""
+    K = ti.Matrix.zero(float, 3, 3)
+    for k in range(m.valence[v]):
+        c = m.incidence[v, k]
+        K += diagonal_block(m, w, c // 4, c % 4)
+    return K
+
+
+# ---- standalone launches (tests, tools) ----------------------------------------------------------
+
+
+@ti.kernel
+def _rotations_kernel(m: MODEL, w: FEM_WORK, x: ti.types.ndarray(), rotation: ti.template(), tol: ti.f64):
+    update_rotations(m, w, x, rotation, tol)
+
+
+@ti.kernel
+def _scatter_kernel(m: MODEL, w: FEM_WORK, what: ti.template(), src: ti.types.ndarray(), accumulation: ti.template()):
+    scatter(m, w, what, src, accumulation)
+
+
+@ti.kernel
+def _scatter_colour_kernel(m: MODEL, w: FEM_WORK, what: ti.template(), src: ti.types.ndarray(),
+                           order: ti.types.ndarray(), begin: ti.i32, end: ti.i32):
+    for i in range(begin, end):
+        scatter_element(m, w, what, order[i], src, "colouring")
+
+
+@ti.kernel
+def _gather_kernel(m: MODEL, w: FEM_WORK, out: ti.types.ndarray(), accumulation: ti.template()):
+    for v in range(m.counts[0]):
+        out[v] = gathered(m, w, v, accumulation)
+
+
+@ti.kernel
+def _stress_kernel(m: MODEL, x: ti.types.ndarray(), out: ti.types.ndarray(), rotation: ti.template(), tol: ti.f64):
+    for e in range(m.counts[1]):
+        R = element_rotation(m, e, x, rotation, tol)
+        G = R.transpose() @ deformation_gradient(m, e, x) - ti.Matrix.identity(float, 3)
+        out[e] = R @ linear_stress(m, e, G) @ R.transpose()
+
+
+class CorotationalFEM:
+    """The elastic part of one soft body: its model (`tissue.fem.model.BodyModel`), the choice of
+    rotations and accumulation, and the per-step work they need (element rotations `R`, the gather
+    buffer or the atomic accumulator, the inverted-element count).
+
+    The Taichi functions of this module take `fem.model.pack` and `fem.work` and are called from
+    the kernels of a solver (see `tissue.solver.ImplicitEuler`); the `*_numpy` methods launch them
+    alone, for tests and tools.
     """
 
-    def __init__(self, mesh: TetMesh, material: Material, rotation: str = "large",
+    def __init__(self, mesh: TetMesh | BodyModel, material: Material | None = None, rotation: str = "large",
                  accumulation: str = "gather"):
         if rotation not in ROTATIONS:
             raise TissueError(f"rotation: unknown method {rotation!r}; expected one of {ROTATIONS}")
         if accumulation not in ACCUMULATIONS:
             raise TissueError(f"accumulation: unknown method {accumulation!r}; expected one of {ACCUMULATIONS}")
-        be = backend.current()
-        real = be.real
-        self.mesh, self.material = mesh, material
+        self.model = mesh if isinstance(mesh, BodyModel) else BodyModel(mesh, material)
+        self.material = self.model.material
         self.rotation, self.accumulation = rotation, accumulation
-        self.n_nodes, self.n_elements = mesh.n_points, mesh.n_tets
-        self.rotation_tolerance = 1e-13 if be.precision == "f64" else 1e-6
-        n, m = self.n_nodes, self.n_elements
+        self.rotation_tolerance = 1e-13 if backend.current().precision == "f64" else 1e-6
+        self._version = None
+        self.resize()
 
-        X = mesh.points
-        Dm = np.stack([X[mesh.tets[:, i]] - X[mesh.tets[:, 0]] for i in (1, 2, 3)], axis=2)
-        lam, mu = material.lame
-        offsets, corners = vertex_incidence(mesh.tets, n)   # vertex -> element corners (gather, diagonal)
-        colours = colour_elements(mesh.tets, n) if accumulation == "colouring" else []
-        with backend.fields_of(self):
-            self.tets = int_field(m, 4)
-            self.rest = ti.Vector.field(3, real, n)
-            self.Dm_inv = ti.Matrix.field(3, 3, real, m)
-            self.rest_frame = ti.Matrix.field(3, 3, real, m)
-            self.volume = ti.field(real, m)
-            self.lame = ti.Vector.field(2, real, m)
-            self.R = ti.Matrix.field(3, 3, real, m)
-            self.inverted = int_field(())
-            self.mass = ti.field(real, n)
-            self.incidence_offsets = int_field(n + 1)
-            self.incidence = int_field(4 * m)
-            # Accumulation structures: only those of the chosen method are allocated.
-            if accumulation == "gather":
-                self.buffer = ti.Vector.field(3, real, 4 * m)
-            else:
-                self.accumulator = ti.Vector.field(3, real, n)
-            if accumulation == "colouring":
-                self.colour_order = int_field(m)
-            self._io_fields = [ti.Vector.field(3, real, n) for _ in range(2)]
+    def resize(self) -> bool:
+        """Match the work arrays to the model's capacity; True when they were re-allocated."""
+        model = self.model
+        if self._version == model.version:
+            return False
+        real = backend.current().real
+        vec3, mat3 = ti.types.vector(3, real), ti.types.matrix(3, 3, real)
+        n, m = model.node_capacity, model.element_capacity
+        old_R = getattr(self, "R", None)
+        self.R = ti.ndarray(mat3, m)
+        R = np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1))
+        if old_R is not None:
+            R[:old_R.shape[0]] = old_R.to_numpy()
+        self.R.from_numpy(R)
+        self.work = FEM_WORK(R=self.R, inverted=ti.ndarray(ti.i32, 1),
+                             buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
+                             accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
+        self._io = [ti.ndarray(vec3, n) for _ in range(2)]
+        self._version = model.version
+        return True
 
-        self.tets.from_numpy(mesh.tets.astype(np.int32))
-        self.rest.from_numpy(X)
-        self.Dm_inv.from_numpy(np.linalg.inv(Dm))
-        self.volume.from_numpy(mesh.volumes)
-        self.lame.from_numpy(np.tile([lam, mu], (m, 1)))
-        self.R.from_numpy(np.tile(np.eye(3), (m, 1, 1)))
-        self._init_rest_frames()
-        lumped = np.zeros(n)
-        np.add.at(lumped, mesh.tets.reshape(-1), np.repeat(material.density * mesh.volumes / 4.0, 4))
-        self.mass.from_numpy(lumped)
-        self.incidence_offsets.from_numpy(offsets)
-        self.incidence.from_numpy(corners)
-        if accumulation == "colouring":
-            self.n_colours = len(colours)
-            self.colour_offsets = [0] + [int(k) for k in np.cumsum([len(c) for c in colours])]
-            self.colour_order.from_numpy(np.concatenate(colours))
+    @property
+    def mesh(self) -> TetMesh:
+        return self.model.mesh()
 
-    @ti.kernel
-    def _init_rest_frames(self):
-        for e in range(self.n_elements):
-            t = self.tets[e]
-            self.rest_frame[e] = edge_frame(self.rest[t[0]], self.rest[t[1]], self.rest[t[2]])
+    @property
+    def n_nodes(self) -> int:
+        return self.model.n_nodes
 
-    # ---- per-element mathematics -------------------------------------------------------------
+    @property
+    def n_elements(self) -> int:
+        return self.model.n_elements
 
-    @ti.func
-    def deformation_gradient(self, e, x):
-        t = self.tets[e]
-        Ds = ti.Matrix.cols([x[t[1]] - x[t[0]], x[t[2]] - x[t[0]], x[t[3]] - x[t[0]]])
-        return Ds @ self.Dm_inv[e]
+    def inverted_count(self) -> int:
+        return int(self.work.inverted[0])
 
-    @ti.func
-    def element_rotation(self, e, x):
-        R = ti.Matrix.identity(float, 3)
-        if ti.static(self.rotation == "large"):
-            t = self.tets[e]
-            R = edge_frame(x[t[0]], x[t[1]], x[t[2]]) @ self.rest_frame[e].transpose()
-        elif ti.static(self.rotation == "polar"):
-            F = self.deformation_gradient(e, x)
-            if ti.abs(F.determinant()) > 1e-6:
-                R = polar_rotation(F, self.rotation_tolerance)
-            else:  # (nearly) flat element: the edge frame is still well defined
-                t = self.tets[e]
-                R = edge_frame(x[t[0]], x[t[1]], x[t[2]]) @ self.rest_frame[e].transpose()
-        return R
+    def rotations(self) -> np.ndarray:
+        """The element rotations of the last update (elements, 3, 3)."""
+        return self.R.to_numpy()[:self.n_elements].astype(np.float64)
 
-    @ti.func
-    def nodal_forces(self, e, G):
-        """Forces (columns 1..3; node 0 balances them) of the linear stress of the displacement
-        gradient G, given in the element's rotated frame: f = -V R σ(sym G) ∇N."""
-        lam, mu = self.lame[e][0], self.lame[e][1]
-        eps = 0.5 * (G + G.transpose())
-        sigma = 2.0 * mu * eps + lam * eps.trace() * ti.Matrix.identity(float, 3)
-        return -self.volume[e] * self.R[e] @ sigma @ self.Dm_inv[e].transpose()
+    # ---- standalone launches ---------------------------------------------------------------------
 
-    @ti.func
-    def elastic_force(self, e, x):
-        """-R Kₑ (Rᵀ x - X) on the element's nodes, as a 3×3 (nodes 1..3; node 0 = -sum)."""
-        G = self.R[e].transpose() @ self.deformation_gradient(e, x) - ti.Matrix.identity(float, 3)
-        return self.nodal_forces(e, G)
-
-    @ti.func
-    def stiffness_product(self, e, p):
-        """-R Kₑ Rᵀ p on the element's nodes (the tangent stiffness times p, with its sign)."""
-        return self.nodal_forces(e, self.R[e].transpose() @ self.deformation_gradient(e, p))
-
-    @ti.func
-    def diagonal_block(self, e, corner):
-        """The element's 3×3 stiffness block R Kₐₐ Rᵀ of one corner (for block-Jacobi)."""
-        Dt = self.Dm_inv[e].transpose()
-        g = ti.Vector([0.0, 0.0, 0.0])
-        if corner == 0:
-            g = -(ti.Vector([Dt[0, 0], Dt[1, 0], Dt[2, 0]]) + ti.Vector([Dt[0, 1], Dt[1, 1], Dt[2, 1]])
-                  + ti.Vector([Dt[0, 2], Dt[1, 2], Dt[2, 2]]))
-        else:
-            g = ti.Vector([Dt[0, corner - 1], Dt[1, corner - 1], Dt[2, corner - 1]])
-        lam, mu = self.lame[e][0], self.lame[e][1]
-        K = self.volume[e] * ((lam + mu) * g.outer_product(g) + mu * g.dot(g) * ti.Matrix.identity(float, 3))
-        return self.R[e] @ K @ self.R[e].transpose()
-
-    # ---- loops (parallel when called at kernel top level) ----------------------------------
-
-    @ti.func
-    def update_rotations(self, x):
-        """Element rotations at x, and the count of inverted elements (det F ≤ 0): linear
-        co-rotational elements have no inversion barrier, so a caller should hear of them."""
-        self.inverted[None] = 0
-        for e in range(self.n_elements):
-            self.R[e] = self.element_rotation(e, x)
-            t = self.tets[e]
-            if (x[t[1]] - x[t[0]]).dot((x[t[2]] - x[t[0]]).cross(x[t[3]] - x[t[0]])) <= 0:
-                self.inverted[None] += 1
-
-    @ti.func
-    def _deposit(self, e, H, out):
-        """Hand the element's nodal vectors (H: nodes 1..3 as columns) to the accumulation."""
-        t = self.tets[e]
-        f0 = -(ti.Vector([H[0, 0], H[1, 0], H[2, 0]]) + ti.Vector([H[0, 1], H[1, 1], H[2, 1]])
-               + ti.Vector([H[0, 2], H[1, 2], H[2, 2]]))
-        if ti.static(self.accumulation == "gather"):
-            self.buffer[4 * e] = f0
-            for a in ti.static(range(3)):
-                self.buffer[4 * e + a + 1] = ti.Vector([H[0, a], H[1, a], H[2, a]])
-        elif ti.static(self.accumulation == "atomic"):
-            out[t[0]] += f0
-            for a in ti.static(range(3)):
-                out[t[a + 1]] += ti.Vector([H[0, a], H[1, a], H[2, a]])
-        else:  # colouring: no two elements of a colour share a node, plain writes are safe
-            out[t[0]] = out[t[0]] + f0
-            for a in ti.static(range(3)):
-                out[t[a + 1]] = out[t[a + 1]] + ti.Vector([H[0, a], H[1, a], H[2, a]])
-
-    @ti.func
-    def scatter_element(self, what: ti.template(), e, src):
-        """One element's part of `what` ("force": elastic forces at positions src; "stiffness":
-        tangent stiffness times src), handed to the accumulation."""
-        H = ti.Matrix.zero(float, 3, 3)
-        if ti.static(what == "force"):
-            H = self.elastic_force(e, src)
-        else:
-            H = self.stiffness_product(e, src)
-        if ti.static(self.accumulation == "gather"):
-            self._deposit(e, H, self.buffer)
-        else:
-            self._deposit(e, H, self.accumulator)
-
-    @ti.func
-    def scatter(self, what: ti.template(), src):
-        """Element stage of `what`; its nodal sums are then read with `gathered(v)`.
-        Colouring is not fused here: it needs a launch per colour (see `scatter_launch`)."""
-        ti.static_assert(self.accumulation != "colouring")
-        for e in range(self.n_elements):
-            self.scatter_element(what, e, src)
-
-    @ti.func
-    def gathered(self, v):
-        """The nodal sum of the last scatter at vertex v (read once: atomic/colouring reset it)."""
-        s = ti.Vector([0.0, 0.0, 0.0])
-        if ti.static(self.accumulation == "gather"):
-            for k in range(self.incidence_offsets[v], self.incidence_offsets[v + 1]):
-                s += self.buffer[self.incidence[k]]
-        else:
-            s = self.accumulator[v]
-            self.accumulator[v] = ti.Vector([0.0, 0.0, 0.0])
-        return s
-
-    @ti.func
-    def stiffness_diagonal(self, v):
-        """Σ over incident elements of R Kₐₐ Rᵀ at vertex v."""
-        K = ti.Matrix.zero(float, 3, 3)
-        for k in range(self.incidence_offsets[v], self.incidence_offsets[v + 1]):
-            c = self.incidence[k]
-            K += self.diagonal_block(c // 4, c % 4)
-        return K
-
-    # ---- standalone launches (tests, tools) ---------------------------------------------------
-
-    @ti.kernel
-    def _rotations_kernel(self, x: ti.template()):
-        self.update_rotations(x)
-
-    @ti.kernel
-    def _scatter_kernel(self, what: ti.template(), src: ti.template()):
-        self.scatter(what, src)
-
-    @ti.kernel
-    def _scatter_colour_kernel(self, what: ti.template(), src: ti.template(), begin: ti.i32, end: ti.i32):
-        for i in range(begin, end):
-            self.scatter_element(what, self.colour_order[i], src)
+    def _vectors(self, values: np.ndarray, slot: int = 0):
+        """One of two nodal arrays kept for the standalone launches, filled with `values`."""
+        self.resize()
+        array = self._io[slot]
+        padded = np.zeros((array.shape[0], 3), dtype=real_numpy())
+        padded[:self.n_nodes] = values
+        array.from_numpy(padded)
+        return array
 
     def scatter_launch(self, what: str, src) -> None:
         """The element stage as its own launch(es): one per colour when colouring."""
+        m = self.model.pack
         if self.accumulation == "colouring":
-            for c in range(self.n_colours):
-                self._scatter_colour_kernel(what, src, self.colour_offsets[c], self.colour_offsets[c + 1])
+            order, offsets = self._colours()
+            for c in range(len(offsets) - 1):
+                _scatter_colour_kernel(m, self.work, what, src, order, offsets[c], offsets[c + 1])
         else:
-            self._scatter_kernel(what, src)
+            _scatter_kernel(m, self.work, what, src, self.accumulation)
 
-    @ti.kernel
-    def _gather_kernel(self, out: ti.template()):
-        for v in out:
-            out[v] = self.gathered(v)
-
-    def _vector_field(self, values: np.ndarray, slot: int = 0):
-        """One of two nodal fields kept for the standalone launches, filled with `values`.
-
-        Reused from call to call: a new field per call would be a new template argument, so every
-        call would compile its kernels again."""
-        f = self._io_fields[slot]
-        f.from_numpy(np.asarray(values, dtype=np.float64 if self.R.dtype == ti.f64 else np.float32))
-        return f
+    def _colours(self):
+        if getattr(self, "_colour_key", None) != (self.model.version, self.n_elements, self.model.tets.sum()):
+            colours = colour_elements(self.model.tets, self.n_nodes)
+            self.n_colours = len(colours)
+            self._colour_order = ti.ndarray(ti.i32, self.n_elements)
+            self._colour_order.from_numpy(np.concatenate(colours))
+            self._colour_offsets = [0] + [int(k) for k in np.cumsum([len(c) for c in colours])]
+            self._colour_key = (self.model.version, self.n_elements, self.model.tets.sum())
+        return self._colour_order, self._colour_offsets
 
     def rotations_numpy(self, positions: np.ndarray) -> np.ndarray:
         """Element rotations (m, 3, 3) at the given positions (also stored for later products)."""
-        self._rotations_kernel(self._vector_field(positions))
-        return self.R.to_numpy()
+        _rotations_kernel(self.model.pack, self.work, self._vectors(positions), self.rotation, self.rotation_tolerance)
+        return self.rotations()
+
+    def _gathered_numpy(self) -> np.ndarray:
+        out = self._vectors(np.zeros((self.n_nodes, 3)), slot=1)
+        _gather_kernel(self.model.pack, self.work, out, self.accumulation)
+        return out.to_numpy()[:self.n_nodes]
 
     def elastic_forces_numpy(self, positions: np.ndarray, update_rotations: bool = True) -> np.ndarray:
         """Elastic nodal forces (n, 3) at the given positions."""
-        x = self._vector_field(positions)
+        x = self._vectors(positions)
         if update_rotations:
-            self._rotations_kernel(x)
-        out = self._vector_field(np.zeros((self.n_nodes, 3)), slot=1)
+            _rotations_kernel(self.model.pack, self.work, x, self.rotation, self.rotation_tolerance)
         self.scatter_launch("force", x)
-        self._gather_kernel(out)
-        return out.to_numpy()
+        return self._gathered_numpy()
 
     def stiffness_product_numpy(self, vectors: np.ndarray) -> np.ndarray:
         """(-Σ R Kₑ Rᵀ) p with the current rotations."""
-        p = self._vector_field(vectors)
-        out = self._vector_field(np.zeros((self.n_nodes, 3)), slot=1)
-        self.scatter_launch("stiffness", p)
-        self._gather_kernel(out)
-        return out.to_numpy()
-
-    @ti.kernel
-    def _stress_kernel(self, x: ti.template(), out: ti.template()):
-        for e in range(self.n_elements):
-            R = self.element_rotation(e, x)
-            G = R.transpose() @ self.deformation_gradient(e, x) - ti.Matrix.identity(float, 3)
-            eps = 0.5 * (G + G.transpose())
-            lam, mu = self.lame[e][0], self.lame[e][1]
-            sigma = 2.0 * mu * eps + lam * eps.trace() * ti.Matrix.identity(float, 3)
-            out[e] = R @ sigma @ R.transpose()
+        self.scatter_launch("stiffness", self._vectors(vectors))
+        return self._gathered_numpy()
 
     def element_stress_numpy(self, positions) -> np.ndarray:
         """Co-rotational stress R σ Rᵀ of each element (m, 3, 3) at the given positions: an (n, 3)
-        array, or a nodal Taichi field such as a solver's `x` (read in place)."""
-        if not hasattr(self, "_stress_field"):   # allocated on first use, so the kernel compiles once
-            with backend.fields_of(self):
-                self._stress_field = ti.Matrix.field(3, 3, self.R.dtype, self.n_elements)
-        x = self._vector_field(positions) if isinstance(positions, np.ndarray) else positions
-        self._stress_kernel(x, self._stress_field)
-        return self._stress_field.to_numpy().astype(np.float64)
+        array, or a nodal ndarray such as a solver's `x` (read in place)."""
+        x = self._vectors(positions) if isinstance(positions, np.ndarray) else positions
+        out = ti.ndarray(ti.types.matrix(3, 3, backend.current().real), self.model.element_capacity)
+        _stress_kernel(self.model.pack, x, out, self.rotation, self.rotation_tolerance)
+        return out.to_numpy()[:self.n_elements].astype(np.float64)

@@ -14,20 +14,24 @@ iteration five parallel loops that exit early once converged. Dot products are b
 fixed order, so results are bit-identical run to run.
 """
 
+import functools
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
-from ..fem import CorotationalFEM
-from ..fem.assembled import BlockRows, SymmetricBlocks
-from ..fem.corotational import int_field
+from ..fem import CorotationalFEM, assembled, corotational
+from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
+from ..fem.corotational import FEM_WORK
+from ..fem.model import DETACHED, MODEL, real_numpy
+from ..launch import replayed
 from ..stats import Stats
-from .multigrid import Multigrid
+from . import multigrid
+from .multigrid import MULTIGRID, Multigrid
 
 PRECONDITIONERS = ("none", "jacobi", "multigrid")
 EXECUTIONS = ("auto", "serial", "parallel")
@@ -68,19 +72,73 @@ class CGSettings:
             raise TissueError(f"smoothing_degree: must be an integer ≥ 1, got {self.smoothing_degree!r}")
 
 
-@ti.data_oriented
+@dataclass(frozen=True)
+class Scheme:
+    """What a step's kernels are compiled for: a handful of choices, each a few variants, so a
+    process compiles at most one kernel per combination it uses, whatever the meshes, sizes and
+    parameters (a template argument of the kernels, keyed by value)."""
+
+    rotation: str
+    accumulation: str
+    operator: str            # "assembled" or "matrix_free"
+    layout: str              # the assembled blocks: "symmetric" (serial) or "rows" (parallel)
+    preconditioner: str
+    smoothing_degree: int    # of the multigrid's Chebyshev smoother
+    unroll: int              # CG iterations per launch on the parallel path
+
+
+# The step's state on the device: nodal vectors, the block-diagonal inverse (preconditioners),
+# the CG scalars (slots above), blocked partial sums, and the step's parameters (slots below).
+STATE = ti.types.argpack(x=ti.types.ndarray(), v=ti.types.ndarray(), dv=ti.types.ndarray(),
+                         r=ti.types.ndarray(), z=ti.types.ndarray(), p=ti.types.ndarray(),
+                         q=ti.types.ndarray(), external=ti.types.ndarray(), block_inverse=ti.types.ndarray(),
+                         scalars=ti.types.ndarray(), partial=ti.types.ndarray(), parameters=ti.types.ndarray())
+DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERATIONS = range(9)
+STEP = ti.types.argpack(model=MODEL, fem=FEM_WORK, state=STATE, blocks=BLOCKS, multigrid=MULTIGRID)
+# Nodes per block of the partial sums (dot products summed in a fixed order: bit-identical reruns).
+BLOCK = 1024
+
+
+@dataclass(frozen=True)
+class StepParameters:
+    """The parameters of a step, read by the kernels at every launch: changing them on a live
+    solver takes effect at the next step and compiles nothing."""
+
+    dt: float
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    rayleigh_mass: float = 0.0
+    rayleigh_stiffness: float = 0.0
+    cg: CGSettings = CGSettings()
+
+    def __post_init__(self):
+        dt = self.dt
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise TissueError(f"dt: the time step must be a finite number > 0 s, got {dt!r}")
+        for name in ("rayleigh_mass", "rayleigh_stiffness"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise TissueError(f"{name}: must be a finite number ≥ 0, got {value!r}")
+        if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
+            raise TissueError(f"gravity: expected 3 finite numbers, got {self.gravity!r}")
+
+    def array(self) -> np.ndarray:
+        values = np.zeros(9)
+        values[[DT, MASS_DAMPING, STIFFNESS_DAMPING]] = self.dt, self.rayleigh_mass, self.rayleigh_stiffness
+        values[[GX, GY, GZ]] = self.gravity
+        values[[TOLERANCE, THRESHOLD, MAX_ITERATIONS]] = self.cg.tolerance, self.cg.threshold, self.cg.max_iterations
+        return values
+
+
 class ImplicitEuler:
-    """Time integration of one soft body. State: positions `x` and velocities `v` (Taichi fields)."""
+    """Time integration of one soft body: its model (through `fem`), its state (`x`, `v`:
+    nodal ndarrays of the model's capacity; `positions()`/`velocities()` for numpy) and the
+    parameters of a step (`parameters`, changed with `set_parameters`)."""
 
     def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
                  cg: CGSettings = CGSettings(), fixed=None, execution: str = "auto",
                  operator: str = "assembled", unroll: int = 5, split_stages: bool = False):
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-            raise TissueError(f"dt: the time step must be a finite number > 0 s, got {dt!r}")
-        for name, value in (("rayleigh_mass", rayleigh_mass), ("rayleigh_stiffness", rayleigh_stiffness)):
-            if not (math.isfinite(value) and value >= 0):
-                raise TissueError(f"{name}: must be a finite number ≥ 0, got {value!r}")
+        parameters = StepParameters(dt, tuple(float(g) for g in gravity), rayleigh_mass, rayleigh_stiffness, cg)
         if execution not in EXECUTIONS:
             raise TissueError(f"execution: unknown {execution!r}; expected one of {EXECUTIONS}")
         if operator not in OPERATORS:
@@ -97,87 +155,169 @@ class ImplicitEuler:
                               "'parallel' or 'auto'")
         if execution == "auto":
             execution = "serial" if (be.arch == "cpu" and fem.n_elements < SERIAL_BELOW) else "parallel"
-        self.fem, self.dt, self.cg = fem, float(dt), cg
+        self.fem, self.model = fem, fem.model
         self.execution, self.unroll, self.operator = execution, unroll, operator
         # The serial path runs a step in one launch; split_stages times its two parts apart
-        # (one more launch, ~20-40 µs on a 600-element mesh) for the benchmarks' stage tables.
+        # (one more launch) for the benchmarks' stage tables.
         self.split_stages = split_stages
         # "assembled": Σ R Kₑ Rᵀ in 3×3 blocks once per step (the upper triangle when one thread
         # does it all, full rows otherwise); "matrix_free": element by element in every CG
         # iteration, as the paper does.
+        layout = "symmetric" if execution == "serial" else "rows"
         self.matrix = None
         if operator == "assembled":
-            self.matrix = (SymmetricBlocks if execution == "serial" else BlockRows)(fem)
-        self.gravity = tuple(float(g) for g in gravity)
-        self.rayleigh_mass, self.rayleigh_stiffness = float(rayleigh_mass), float(rayleigh_stiffness)
+            self.matrix = (SymmetricBlocks if layout == "symmetric" else BlockRows)(self.model)
+        self.scheme = Scheme(fem.rotation, fem.accumulation, operator, layout, cg.preconditioner,
+                             cg.smoothing_degree, unroll)
         self.stats = Stats()
         self._warned_inversion = False
-        n, real = fem.n_nodes, be.real
-
-        self.block = 1024 if be.arch == "cpu" else 32
-        self.n_blocks = (n + self.block - 1) // self.block
-        with backend.fields_of(self):
-            self.x = ti.Vector.field(3, real, n)
-            self.v = ti.Vector.field(3, real, n)
-            self.dv = ti.Vector.field(3, real, n)
-            self.r = ti.Vector.field(3, real, n)
-            self.z = ti.Vector.field(3, real, n)
-            self.p = ti.Vector.field(3, real, n)
-            self.q = ti.Vector.field(3, real, n)
-            self.external = ti.Vector.field(3, real, n)   # applied nodal forces (N), zero unless set
-            self.fixed = int_field(n)
-            self.scalars = ti.field(real, 12)
-            self.partial = ti.field(real, (2, self.n_blocks))
-            if cg.preconditioner != "none":
-                self.block_inverse = ti.Matrix.field(3, 3, real, n)
+        self._version = None
+        self._pack_key = None
+        self.multigrid = None
+        self._resize()
+        self.parameters = parameters
+        self._upload_parameters()
+        if fixed is not None:
+            self.model.set_held(fixed)
         if cg.preconditioner == "multigrid":
-            # By default the dense coarse product, (3 · 2.5 √n)² ≈ 56 n multiply-adds, stays under
-            # the ~135 n of a product with the fine matrix.
-            coarse = cg.coarse_nodes if cg.coarse_nodes is not None else max(8, round(2.5 * math.sqrt(n)))
-            self.multigrid = Multigrid(self, coarse, cg.smoothing_degree)
-        self.x.copy_from(fem.rest)
-        self.set_fixed(fixed if fixed is not None else [])
+            self.multigrid = Multigrid(self)
+        self.model.subscribe(self)
+
+    # ---- parameters ---------------------------------------------------------------------------
+
+    @property
+    def dt(self) -> float:
+        return self.parameters.dt
+
+    @property
+    def gravity(self) -> tuple[float, float, float]:
+        return self.parameters.gravity
+
+    @property
+    def rayleigh_mass(self) -> float:
+        return self.parameters.rayleigh_mass
+
+    @property
+    def rayleigh_stiffness(self) -> float:
+        return self.parameters.rayleigh_stiffness
+
+    @property
+    def cg(self) -> CGSettings:
+        return self.parameters.cg
+
+    def set_parameters(self, **changes) -> None:
+        """Change dt, gravity, rayleigh_mass, rayleigh_stiffness or cg (its stopping rule) from
+        the next step on. The preconditioner's kind is part of the compiled scheme: build another
+        solver to change it."""
+        new = replace(self.parameters, **changes)
+        if (new.cg.preconditioner, new.cg.smoothing_degree, new.cg.coarse_nodes) != \
+                (self.cg.preconditioner, self.cg.smoothing_degree, self.cg.coarse_nodes):
+            raise TissueError("cg: the preconditioner and its multigrid settings are fixed when the solver is "
+                              "built; only max_iterations, tolerance and threshold change on a live solver")
+        rest_changed = (new.dt, new.rayleigh_mass, new.rayleigh_stiffness) != \
+            (self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
+        self.parameters = new
+        self._upload_parameters()
+        if rest_changed and self.multigrid is not None:
+            self.multigrid.rebuild()     # its coarse inverse is of the rest matrix at this dt
+
+    def _upload_parameters(self) -> None:
+        self.arrays["parameters"].from_numpy(self.parameters.array().astype(real_numpy()))
+
+    # ---- storage ------------------------------------------------------------------------------
+
+    def _resize(self) -> None:
+        """Match the state to the model's capacity (keeping x and v); compiles nothing."""
+        model = self.model
+        if self._version == model.version:
+            return
+        self.fem.resize()
+        if self.matrix is not None:
+            self.matrix.resize()
+        real = backend.current().real
+        vec3, mat3 = ti.types.vector(3, real), ti.types.matrix(3, 3, real)
+        n = model.node_capacity
+        old = getattr(self, "arrays", None)
+        arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
+        arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
+        arrays["scalars"] = ti.ndarray(real, 12)
+        arrays["partial"] = ti.ndarray(real, (2, (n + BLOCK - 1) // BLOCK))
+        arrays["parameters"] = ti.ndarray(real, 9)
+        if old is None:
+            rest = np.zeros((n, 3), dtype=real_numpy())
+            rest[:model.n_nodes] = model.points
+            arrays["x"].from_numpy(rest)
+        else:
+            for name in ("x", "v", "external"):
+                values = np.zeros((n, 3), dtype=real_numpy())
+                previous = old[name].to_numpy()
+                values[:len(previous)] = previous
+                arrays[name].from_numpy(values)
+            arrays["parameters"].from_numpy(old["parameters"].to_numpy())
+        self.arrays = arrays
+        self.state = STATE(**arrays)
+        self.x, self.v = arrays["x"], arrays["v"]
+        self._version = model.version
+
+    def topology_changed(self, edit) -> None:
+        self._resize()
+        if self.multigrid is not None:
+            self.multigrid.rebuild()
+
+    def _step_pack(self):
+        """The argpack of a launch, rebuilt only when one of its parts was re-allocated."""
+        self._resize()
+        parts = (self.model.pack, self.fem.work, self.state,
+                 self.matrix.pack if self.matrix is not None else _none_blocks(),
+                 self.multigrid.pack if self.multigrid is not None else _none_multigrid())
+        key = tuple(id(p) for p in parts)
+        if key != self._pack_key:
+            self._pack = STEP(model=parts[0], fem=parts[1], state=parts[2], blocks=parts[3], multigrid=parts[4])
+            self._pack_key = key
+        return self._pack
 
     # ---- state at the numpy boundary --------------------------------------------------------
 
     def set_fixed(self, nodes) -> None:
-        nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
-        bad = nodes[(nodes < 0) | (nodes >= self.fem.n_nodes)]
-        if len(bad):
-            raise TissueError(f"fixed: node ids {bad[:10].tolist()} out of range [0, {self.fem.n_nodes})")
-        mask = np.zeros(self.fem.n_nodes, dtype=np.int32)
-        mask[nodes] = 1
-        self.fixed.from_numpy(mask)
-        self.fixed_nodes = np.flatnonzero(mask)
-        if self.cg.preconditioner == "multigrid":
-            self.multigrid.set_fixed(mask)
+        self.model.set_held(nodes)
+        if self.multigrid is not None:
+            self.multigrid.rebuild()
+
+    @property
+    def fixed_nodes(self) -> np.ndarray:
+        return self.model.held_nodes
 
     def set_external_forces(self, forces=None) -> None:
         """Nodal forces (n, 3) in newtons applied from the next step on (tip loads, an
         instrument's push); None removes them. Forces at fixed nodes have no effect."""
-        if forces is None:
-            self.external.fill(0.0)
-            return
-        forces = np.asarray(forces, dtype=np.float64)
-        if forces.shape != (self.fem.n_nodes, 3):
-            raise TissueError(f"external forces: expected shape ({self.fem.n_nodes}, 3), got {forces.shape}")
-        if not np.isfinite(forces).all():
-            bad = np.flatnonzero(~np.isfinite(forces).all(axis=1))
-            raise TissueError(f"external forces: non-finite values at nodes {bad[:10].tolist()}")
-        self.external.from_numpy(forces.astype(np.float64 if self.x.dtype == ti.f64 else np.float32))
+        n = self.model.n_nodes
+        values = np.zeros((self.model.node_capacity, 3), dtype=real_numpy())
+        if forces is not None:
+            forces = np.asarray(forces, dtype=np.float64)
+            if forces.shape != (n, 3):
+                raise TissueError(f"external forces: expected shape ({n}, 3), got {forces.shape}")
+            if not np.isfinite(forces).all():
+                bad = np.flatnonzero(~np.isfinite(forces).all(axis=1))
+                raise TissueError(f"external forces: non-finite values at nodes {bad[:10].tolist()}")
+            values[:n] = forces
+        self._resize()
+        self.arrays["external"].from_numpy(values)
 
     def positions(self) -> np.ndarray:
-        return self.x.to_numpy().astype(np.float64)
+        self._resize()
+        return self.x.to_numpy()[:self.model.n_nodes].astype(np.float64)
 
     def velocities(self) -> np.ndarray:
-        return self.v.to_numpy().astype(np.float64)
+        self._resize()
+        return self.v.to_numpy()[:self.model.n_nodes].astype(np.float64)
 
     def set_state(self, positions=None, velocities=None) -> None:
-        dtype = np.float64 if self.x.dtype == ti.f64 else np.float32
-        if positions is not None:
-            self.x.from_numpy(np.asarray(positions, dtype=dtype))
-        if velocities is not None:
-            self.v.from_numpy(np.asarray(velocities, dtype=dtype))
+        self._resize()
+        for array, values in ((self.x, positions), (self.v, velocities)):
+            if values is not None:
+                padded = array.to_numpy()
+                padded[:self.model.n_nodes] = np.asarray(values, dtype=np.float64)
+                array.from_numpy(padded)
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 
@@ -193,22 +333,24 @@ class ImplicitEuler:
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
+        k, o = self._step_pack(), self.scheme
+        tol = self.fem.rotation_tolerance
         if self.execution == "serial" and not self.split_stages:
             with self.stats.stage("step"):
-                report = self._serial("step")
+                report = SERIAL(k, o, "step", tol)
         else:
             with self.stats.stage("rotations+forces"):
                 if self.execution == "serial":
-                    self._serial("begin")
+                    SERIAL(k, o, "begin", tol)
                 else:
-                    self._begin_parallel()
+                    BEGIN_PARALLEL(k, o, tol)
             with self.stats.stage("cg"):
                 if self.execution == "serial":
-                    report = self._serial("solve")
+                    report = SERIAL(k, o, "solve", tol)
                 else:
                     for _ in range(-(-self.cg.max_iterations // self.unroll)):
-                        self._iterate_parallel()
-                    report = self._end_parallel()
+                        ITERATE_PARALLEL(k, o)
+                    report = END_PARALLEL(k, o)
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),
@@ -233,224 +375,295 @@ class ImplicitEuler:
             self.step()
         return self.positions()
 
-    # ---- kernels: a step is begin, CG iterations, end --------------------------------------
 
-    @ti.func
-    def _sum_partials(self, slot):
-        s = 0.0
-        for b in range(self.n_blocks):
-            s += self.partial[slot, b]
-        return s
+@functools.cache
+def _none_blocks():
+    """The blocks argument of a matrix-free scheme (never read)."""
+    one = ti.ndarray(ti.i32, 1)
+    return BLOCKS(counts=one, gradients=one, rotated=one, slots=one, index=one, offsets=one, blocks=one,
+                  diagonal=one, product=one)
 
-    @ti.func
-    def _preconditioned(self, v, r):
-        """z = P⁻¹ r node by node; multigrid couples nodes, so it runs after (_precondition_coupled)."""
-        z = r
-        if ti.static(self.cg.preconditioner == "jacobi"):
-            z = self.block_inverse[v] @ r
-        return z
 
-    @ti.func
-    def multiply(self, src: ti.template()):
-        """The pass that a product needs before `_stiffness_times(v, src)` can read node v."""
-        if ti.static(self.operator == "assembled"):
-            self.matrix.multiply(src)
-        else:
-            self.fem.scatter("stiffness", src)
+@functools.cache
+def _none_multigrid():
+    """The multigrid argument of a scheme without it (never read)."""
+    one = ti.ndarray(ti.i32, 1)
+    return MULTIGRID(**{name: one for name in MULTIGRID.members})
 
-    @ti.func
-    def _precondition_coupled(self, first: ti.template()):
-        """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first), and rᵀz into
-        partial[0] in place of the node-by-node value."""
-        if ti.static(self.cg.preconditioner == "multigrid"):
-            self.multigrid.apply(self.r, self.z, self.scalars, DONE)
-            for b in range(self.n_blocks):
-                rz = 0.0
-                if self.scalars[DONE] == 0:
-                    for v in range(b * self.block, ti.min((b + 1) * self.block, self.fem.n_nodes)):
-                        if ti.static(first):
-                            self.p[v] = self.z[v]
-                        rz += self.r[v].dot(self.z[v])
-                self.partial[0, b] = rz
 
-    @ti.func
-    def operator_row(self, v, src):
-        """(A src) at node v, filtered (zero at fixed nodes), after `multiply(src)`."""
-        mass_factor = 1.0 + self.dt * self.rayleigh_mass
-        stiffness_factor = self.dt * self.rayleigh_stiffness + self.dt * self.dt
-        qv = mass_factor * self.fem.mass[v] * src[v] + stiffness_factor * self._stiffness_times(v, src)
-        if self.fixed[v]:
-            qv = ti.Vector([0.0, 0.0, 0.0])
-        return qv
+# ---- kernels: a step is begin, CG iterations, end, over the launch's argpack `k` and scheme `o` ----
 
-    @ti.func
-    def _stiffness_times(self, v, src):
-        """(Σ R Kₑ Rᵀ src) at node v, after `multiply(src)`."""
-        Kp = ti.Vector([0.0, 0.0, 0.0])
-        if ti.static(self.operator == "assembled"):
-            Kp = self.matrix.product_row(v, src)
-        else:
-            Kp = -self.fem.gathered(v)
-        return Kp
 
-    @ti.func
-    def _stiffness_diagonal(self, v):
-        K = ti.Matrix.zero(float, 3, 3)
-        if ti.static(self.operator == "assembled"):
-            K = self.matrix.diagonal_block(v)
-        else:
-            K = self.fem.stiffness_diagonal(v)
-        return K
+@ti.func
+def _sum_partials(k: ti.template(), slot):
+    s = 0.0
+    for b in range((k.model.counts[0] + BLOCK - 1) // BLOCK):
+        s += k.state.partial[slot, b]
+    return s
 
-    @ti.func
-    def _begin(self):
-        h, fem = self.dt, self.fem
-        mass_factor = 1.0 + h * self.rayleigh_mass
-        stiffness_factor = h * self.rayleigh_stiffness + h * h
-        g = ti.Vector(self.gravity)
-        fem.update_rotations(self.x)
-        if ti.static(self.operator == "assembled"):
-            self.matrix.assemble()
-        if ti.static(self.cg.preconditioner == "multigrid"):
-            self.multigrid.update_rotations()
-            for _ in range(1):  # the V-cycle's loops run while DONE is 0
-                self.scalars[DONE] = 0
-        fem.scatter("force", self.x)
-        for v in range(fem.n_nodes):  # the forces f(x, v), kept in r until the right-hand side is complete
-            m = fem.mass[v]
-            self.r[v] = fem.gathered(v) + m * g + self.external[v] - self.rayleigh_mass * m * self.v[v]
-        self.multiply(self.v)
-        for b in range(self.n_blocks):
-            rz, rr = 0.0, 0.0
-            for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
-                rhs = h * self.r[v] - stiffness_factor * self._stiffness_times(v, self.v)
-                if self.fixed[v]:
-                    rhs = ti.Vector([0.0, 0.0, 0.0])
-                if ti.static(self.cg.preconditioner != "none"):
-                    A = mass_factor * fem.mass[v] * ti.Matrix.identity(float, 3) \
-                        + stiffness_factor * self._stiffness_diagonal(v)
-                    self.block_inverse[v] = A.inverse()
-                z = self._preconditioned(v, rhs)
-                self.dv[v] = ti.Vector([0.0, 0.0, 0.0])
-                self.r[v] = rhs
-                self.z[v] = z
-                self.p[v] = z
-                rz += rhs.dot(z)
-                rr += rhs.dot(rhs)
-            self.partial[0, b] = rz
-            self.partial[1, b] = rr
-        self._precondition_coupled(True)
-        for _ in range(1):
-            delta = self._sum_partials(0)
-            self.scalars[DELTA] = delta
-            self.scalars[DELTA0] = delta
-            self.scalars[RHS2] = self._sum_partials(1)
-            self.scalars[ITERATION] = 0
-            self.scalars[BREAKDOWN] = 0
-            self.scalars[DONE] = 1 if delta <= 0 else 0
 
-    @ti.func
-    def _iteration(self):
-        fem = self.fem
-        if ti.static(self.operator == "matrix_free"):
-            for e in range(fem.n_elements):  # element stage, skipped once converged
-                if self.scalars[DONE] == 0:
-                    fem.scatter_element("stiffness", e, self.p)
-        else:
-            self.matrix.multiply(self.p)  # serial only (in parallel, rows multiply on demand)
-        for b in range(self.n_blocks):  # q = A p (filtered), and pᵀq
-            pq = 0.0
-            if self.scalars[DONE] == 0:
-                for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
-                    qv = self.operator_row(v, self.p)
-                    self.q[v] = qv
-                    pq += self.p[v].dot(qv)
-            self.partial[0, b] = pq
-        for _ in range(1):
-            if self.scalars[DONE] == 0:
-                pq = self._sum_partials(0)
-                self.scalars[PQ] = pq
-                if not (ti.abs(pq) > self.cg.threshold) or not (pq == pq):
-                    self.scalars[DONE] = 1
-                    if pq < 0 or not (pq == pq):
-                        self.scalars[BREAKDOWN] = 1
-                else:
-                    self.scalars[ALPHA] = self.scalars[DELTA] / pq
-        for b in range(self.n_blocks):  # dv += α p, r -= α q, z = P⁻¹ r, and rᵀz
+@ti.func
+def _blocks(k: ti.template()):
+    return (k.model.counts[0] + BLOCK - 1) // BLOCK
+
+
+@ti.func
+def _block_nodes(k: ti.template(), b):
+    return b * BLOCK, ti.min((b + 1) * BLOCK, k.model.counts[0])
+
+
+@ti.func
+def _preconditioned(k: ti.template(), o: ti.template(), v, r):
+    """z = P⁻¹ r node by node; multigrid couples nodes, so it runs after (_precondition_coupled)."""
+    z = r
+    if ti.static(o.preconditioner == "jacobi"):
+        z = k.state.block_inverse[v] @ r
+    return z
+
+
+@ti.func
+def multiply(k: ti.template(), o: ti.template(), src: ti.template()):
+    """The pass that a product needs before `_stiffness_times(v, src)` can read node v."""
+    if ti.static(o.operator == "matrix_free"):
+        corotational.scatter(k.model, k.fem, "stiffness", src, o.accumulation)
+    elif ti.static(o.layout == "symmetric"):
+        assembled.symmetric_multiply(k.model, k.blocks, src)
+
+
+@ti.func
+def _stiffness_times(k: ti.template(), o: ti.template(), v, src: ti.template()):
+    """(Σ R Kₑ Rᵀ src) at node v, after `multiply(src)`."""
+    Kp = ti.Vector([0.0, 0.0, 0.0])
+    if ti.static(o.operator == "matrix_free"):
+        Kp = -corotational.gathered(k.model, k.fem, v, o.accumulation)
+    elif ti.static(o.layout == "symmetric"):
+        Kp = k.blocks.product[v]
+    else:
+        Kp = assembled.rows_product(k.blocks, v, src)
+    return Kp
+
+
+@ti.func
+def factors(k: ti.template()):
+    """The coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ."""
+    h = k.state.parameters[DT]
+    return 1.0 + h * k.state.parameters[MASS_DAMPING], h * k.state.parameters[STIFFNESS_DAMPING] + h * h
+
+
+@ti.func
+def operator_row(k: ti.template(), o: ti.template(), v, src: ti.template(), mass_factor, stiffness_factor):
+    """(A src) at node v, filtered (zero at held and detached nodes), after `multiply(src)`."""
+    qv = mass_factor * k.model.mass[v] * src[v] + stiffness_factor * _stiffness_times(k, o, v, src)
+    if k.model.held[v] != 0:
+        qv = ti.Vector([0.0, 0.0, 0.0])
+    return qv
+
+
+@ti.func
+def _stiffness_diagonal(k: ti.template(), o: ti.template(), v):
+    K = ti.Matrix.zero(float, 3, 3)
+    if ti.static(o.operator == "matrix_free"):
+        K = corotational.stiffness_diagonal(k.model, k.fem, v)
+    elif ti.static(o.layout == "symmetric"):
+        K = k.blocks.diagonal[v]
+    else:
+        K = k.blocks.blocks[k.blocks.diagonal[v]]
+    return K
+
+
+@ti.func
+def _precondition_coupled(k: ti.template(), o: ti.template(), first: ti.template()):
+    """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first), and rᵀz into
+    partial[0] in place of the node-by-node value."""
+    if ti.static(o.preconditioner == "multigrid"):
+        multigrid.apply(k, o, k.state.r, k.state.z)
+        for b in range(_blocks(k)):
             rz = 0.0
-            if self.scalars[DONE] == 0:
-                alpha = self.scalars[ALPHA]
-                for v in range(b * self.block, ti.min((b + 1) * self.block, fem.n_nodes)):
-                    self.dv[v] = self.dv[v] + alpha * self.p[v]  # rows are owned: no atomics
-                    r = self.r[v] - alpha * self.q[v]
-                    z = self._preconditioned(v, r)
-                    self.r[v] = r
-                    self.z[v] = z
-                    rz += r.dot(z)
-            self.partial[0, b] = rz
-        self._precondition_coupled(False)
-        for _ in range(1):
-            if self.scalars[DONE] == 0:
-                delta = self._sum_partials(0)
-                self.scalars[DELTA_OLD] = self.scalars[DELTA]
-                self.scalars[DELTA] = delta
-                self.scalars[ITERATION] += 1
-                self.scalars[BETA] = delta / self.scalars[DELTA_OLD]
-                tol = self.cg.tolerance
-                if delta <= tol * tol * self.scalars[DELTA0] or self.scalars[ITERATION] >= self.cg.max_iterations:
-                    self.scalars[DONE] = 1
-        for v in range(self.fem.n_nodes):
-            if self.scalars[DONE] == 0:
-                self.p[v] = self.z[v] + self.scalars[BETA] * self.p[v]
+            if k.state.scalars[DONE] == 0:
+                begin, end = _block_nodes(k, b)
+                for v in range(begin, end):
+                    if ti.static(first):
+                        k.state.p[v] = k.state.z[v]
+                    rz += k.state.r[v].dot(k.state.z[v])
+            k.state.partial[0, b] = rz
 
-    @ti.func
-    def _end(self):
-        h = self.dt
-        for b in range(self.n_blocks):
-            rr, bad = 0.0, 0.0
-            for v in range(b * self.block, ti.min((b + 1) * self.block, self.fem.n_nodes)):
-                vel = self.v[v] + self.dv[v]
-                if self.fixed[v]:
-                    vel = ti.Vector([0.0, 0.0, 0.0])
-                if not (vel.norm_sqr() < 1e300):  # NaN or inf
-                    bad += 1.0
-                self.v[v] = vel
-                self.x[v] = self.x[v] + h * vel
-                rr += self.r[v].dot(self.r[v])
-            self.partial[0, b] = rr
-            self.partial[1, b] = bad
-        for _ in range(1):
-            self.scalars[RES2] = self._sum_partials(0)
-            self.scalars[NONFINITE] = self._sum_partials(1)
 
-    @ti.kernel
-    def _begin_parallel(self):
-        self._begin()
+@ti.func
+def _begin(k: ti.template(), o: ti.template(), tol):
+    h = k.state.parameters[DT]
+    mass_factor, stiffness_factor = factors(k)
+    g = ti.Vector([k.state.parameters[GX], k.state.parameters[GY], k.state.parameters[GZ]])
+    corotational.update_rotations(k.model, k.fem, k.state.x, o.rotation, tol)
+    if ti.static(o.operator == "assembled"):
+        if ti.static(o.layout == "symmetric"):
+            assembled.symmetric_assemble(k.model, k.fem, k.blocks)
+        else:
+            assembled.rows_assemble(k.model, k.fem, k.blocks)
+    if ti.static(o.preconditioner == "multigrid"):
+        multigrid.update_rotations(k, tol)
+        for _ in range(1):  # the V-cycle's loops run while DONE is 0
+            k.state.scalars[DONE] = 0
+    corotational.scatter(k.model, k.fem, "force", k.state.x, o.accumulation)
+    for v in range(k.model.counts[0]):  # the forces f(x, v), kept in r until the right-hand side is complete
+        mv = k.model.mass[v]
+        k.state.r[v] = corotational.gathered(k.model, k.fem, v, o.accumulation) + mv * g + k.state.external[v] \
+            - k.state.parameters[MASS_DAMPING] * mv * k.state.v[v]
+    multiply(k, o, k.state.v)
+    for b in range(_blocks(k)):
+        rz, rr = 0.0, 0.0
+        begin, end = _block_nodes(k, b)
+        for v in range(begin, end):
+            rhs = h * k.state.r[v] - stiffness_factor * _stiffness_times(k, o, v, k.state.v)
+            if k.model.held[v] != 0:
+                rhs = ti.Vector([0.0, 0.0, 0.0])
+            if ti.static(o.preconditioner != "none"):
+                A = mass_factor * k.model.mass[v] * ti.Matrix.identity(float, 3) + stiffness_factor * _stiffness_diagonal(k, o, v)
+                if k.model.held[v] == DETACHED:   # no element: A is zero there, and so is r
+                    A = ti.Matrix.identity(float, 3)
+                k.state.block_inverse[v] = A.inverse()
+            z = _preconditioned(k, o, v, rhs)
+            k.state.dv[v] = ti.Vector([0.0, 0.0, 0.0])
+            k.state.r[v] = rhs
+            k.state.z[v] = z
+            k.state.p[v] = z
+            rz += rhs.dot(z)
+            rr += rhs.dot(rhs)
+        k.state.partial[0, b] = rz
+        k.state.partial[1, b] = rr
+    _precondition_coupled(k, o, True)
+    for _ in range(1):
+        delta = _sum_partials(k, 0)
+        k.state.scalars[DELTA] = delta
+        k.state.scalars[DELTA0] = delta
+        k.state.scalars[RHS2] = _sum_partials(k, 1)
+        k.state.scalars[ITERATION] = 0
+        k.state.scalars[BREAKDOWN] = 0
+        k.state.scalars[DONE] = 1 if delta <= 0 else 0
 
-    @ti.kernel
-    def _iterate_parallel(self):
-        for _ in ti.static(range(self.unroll)):
-            self._iteration()
 
-    @ti.func
-    def _report(self):
-        return ti.Vector([self.scalars[ITERATION], self.scalars[RES2], self.scalars[RHS2],
-                          self.scalars[BREAKDOWN], self.scalars[NONFINITE], self.fem.inverted[None]])
+@ti.func
+def _iteration(k: ti.template(), o: ti.template()):
+    if ti.static(o.operator == "matrix_free"):
+        for e in range(k.model.counts[1]):  # element stage, skipped once converged
+            if k.state.scalars[DONE] == 0:
+                corotational.scatter_element(k.model, k.fem, "stiffness", e, k.state.p, o.accumulation)
+    elif ti.static(o.layout == "symmetric"):
+        assembled.symmetric_multiply(k.model, k.blocks, k.state.p)  # serial only (rows multiply on demand)
+    mass_factor, stiffness_factor = factors(k)
+    for b in range(_blocks(k)):  # q = A p (filtered), and pᵀq
+        pq = 0.0
+        if k.state.scalars[DONE] == 0:
+            begin, end = _block_nodes(k, b)
+            for v in range(begin, end):
+                qv = operator_row(k, o, v, k.state.p, mass_factor, stiffness_factor)
+                k.state.q[v] = qv
+                pq += k.state.p[v].dot(qv)
+        k.state.partial[0, b] = pq
+    for _ in range(1):
+        if k.state.scalars[DONE] == 0:
+            pq = _sum_partials(k, 0)
+            k.state.scalars[PQ] = pq
+            if not (ti.abs(pq) > k.state.parameters[THRESHOLD]) or not (pq == pq):
+                k.state.scalars[DONE] = 1
+                if pq < 0 or not (pq == pq):
+                    k.state.scalars[BREAKDOWN] = 1
+            else:
+                k.state.scalars[ALPHA] = k.state.scalars[DELTA] / pq
+    for b in range(_blocks(k)):  # dv += α p, r -= α q, z = P⁻¹ r, and rᵀz
+        rz = 0.0
+        if k.state.scalars[DONE] == 0:
+            alpha = k.state.scalars[ALPHA]
+            begin, end = _block_nodes(k, b)
+            for v in range(begin, end):
+                k.state.dv[v] = k.state.dv[v] + alpha * k.state.p[v]  # rows are owned: no atomics
+                r = k.state.r[v] - alpha * k.state.q[v]
+                z = _preconditioned(k, o, v, r)
+                k.state.r[v] = r
+                k.state.z[v] = z
+                rz += r.dot(z)
+        k.state.partial[0, b] = rz
+    _precondition_coupled(k, o, False)
+    for _ in range(1):
+        if k.state.scalars[DONE] == 0:
+            delta = _sum_partials(k, 0)
+            k.state.scalars[DELTA_OLD] = k.state.scalars[DELTA]
+            k.state.scalars[DELTA] = delta
+            k.state.scalars[ITERATION] = k.state.scalars[ITERATION] + 1
+            k.state.scalars[BETA] = delta / k.state.scalars[DELTA_OLD]
+            tol = k.state.parameters[TOLERANCE]
+            if delta <= tol * tol * k.state.scalars[DELTA0] or k.state.scalars[ITERATION] >= k.state.parameters[MAX_ITERATIONS]:
+                k.state.scalars[DONE] = 1
+    for v in range(k.model.counts[0]):
+        if k.state.scalars[DONE] == 0:
+            k.state.p[v] = k.state.z[v] + k.state.scalars[BETA] * k.state.p[v]
 
-    @ti.kernel
-    def _end_parallel(self) -> ti.types.vector(6, float):
-        self._end()
-        return self._report()
 
-    @ti.kernel
-    def _serial(self, part: ti.template()) -> ti.types.vector(6, float):
-        """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            if ti.static(part != "solve"):
-                self._begin()
-            if ti.static(part != "begin"):
-                while self.scalars[DONE] == 0:
-                    self._iteration()
-                self._end()
-        return self._report()
+@ti.func
+def _end(k: ti.template()):
+    h = k.state.parameters[DT]
+    for b in range(_blocks(k)):
+        rr, bad = 0.0, 0.0
+        begin, end = _block_nodes(k, b)
+        for v in range(begin, end):
+            vel = k.state.v[v] + k.state.dv[v]
+            if k.model.held[v] != 0:
+                vel = ti.Vector([0.0, 0.0, 0.0])
+            if not (vel.norm_sqr() < 1e300):  # NaN or inf
+                bad += 1.0
+            k.state.v[v] = vel
+            k.state.x[v] = k.state.x[v] + h * vel
+            rr += k.state.r[v].dot(k.state.r[v])
+        k.state.partial[0, b] = rr
+        k.state.partial[1, b] = bad
+    for _ in range(1):
+        k.state.scalars[RES2] = _sum_partials(k, 0)
+        k.state.scalars[NONFINITE] = _sum_partials(k, 1)
+
+
+@ti.func
+def _report(k: ti.template()):
+    return ti.Vector([k.state.scalars[ITERATION], k.state.scalars[RES2], k.state.scalars[RHS2], k.state.scalars[BREAKDOWN],
+                      k.state.scalars[NONFINITE], ti.cast(k.fem.inverted[0], float)])
+
+
+@ti.kernel
+def _begin_parallel(k: STEP, o: ti.template(), tol: ti.f64):
+    _begin(k, o, tol)
+
+
+@ti.kernel
+def _iterate_parallel(k: STEP, o: ti.template()):
+    for _ in ti.static(range(o.unroll)):
+        _iteration(k, o)
+
+
+@ti.kernel
+def _end_parallel(k: STEP, o: ti.template()) -> ti.types.vector(6, float):
+    _end(k)
+    return _report(k)
+
+
+@ti.kernel
+def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> ti.types.vector(6, float):
+    """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        if ti.static(part != "solve"):
+            _begin(k, o, tol)
+        if ti.static(part != "begin"):
+            while k.state.scalars[DONE] == 0:
+                _iteration(k, o)
+            _end(k)
+    return _report(k)
+
+
+SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (
+    replayed(kernel) for kernel in (_serial, _begin_parallel, _iterate_parallel, _end_parallel))
+
+
+@ti.kernel
+def apply_preconditioner(k: STEP, o: ti.template(), r: ti.types.ndarray(), z: ti.types.ndarray()):
+    """z = B r alone (tests): the multigrid V-cycle with the matrix of the last step."""
+    for _ in range(1):
+        k.state.scalars[DONE] = 0
+    multigrid.apply(k, o, r, z)

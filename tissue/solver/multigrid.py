@@ -21,6 +21,8 @@ the spectrum of D⁻¹A unchanged; removing fixed dofs only lowers λ_max). Cost
 and one dense product with A_c⁻¹ (3·coarse nodes)².
 """
 
+import math
+
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
@@ -28,9 +30,11 @@ import scipy.sparse.linalg as spla
 import taichi as ti
 
 from .. import backend
-from ..fem.corotational import int_field, nodal_rotation
+from ..fem.corotational import nodal_rotation
+from ..fem.model import real_numpy
 from ..mesh import box
 from ..mesh.embedding import EmbeddedSurface
+from . import implicit_euler as ie
 from .reference import rest_matrix
 
 SMOOTHING_RANGE = 30.0   # Chebyshev targets [λ/30, λ]: the part of the spectrum the coarse space misses
@@ -46,6 +50,14 @@ def coarse_grid(points: np.ndarray, target_nodes: int):
         if np.prod(cells + 1) <= target_nodes or cells.max() == 1:
             return box(size=size, cells=cells, origin=lo)
         spacing *= 1.05
+
+
+# counts: [coarse nodes]; coefficients: θ, then (ρₖρₖ₋₁, 2ρₖ/δ) per Chebyshev step.
+MULTIGRID = ti.types.argpack(counts=ti.types.ndarray(), nodes=ti.types.ndarray(), weights=ti.types.ndarray(),
+                             fine_offsets=ti.types.ndarray(), fine_entries=ti.types.ndarray(),
+                             coarse_inverse=ti.types.ndarray(), R=ti.types.ndarray(), res=ti.types.ndarray(),
+                             d=ti.types.ndarray(), rc=ti.types.ndarray(), ec=ti.types.ndarray(),
+                             coefficients=ti.types.ndarray())
 
 
 def chebyshev_coefficients(lam_max: float, degree: int):
@@ -74,150 +86,168 @@ def largest_eigenvalue(A: sp.spmatrix) -> float:
     return float(spla.eigsh(S, k=1, which="LA", tol=1e-3, return_eigenvectors=False)[0])
 
 
-@ti.data_oriented
 class Multigrid:
     """The two-level preconditioner of one ImplicitEuler (its assembled matrix, block-diagonal
-    inverse and fixed nodes). `apply` is a Taichi function for the solver's kernels."""
+    inverse and held nodes). `apply` is a Taichi function for the solver's kernels; `rebuild()`
+    redoes the set-up (numpy and scipy, no compilation) after the model, held nodes or dt change."""
 
-    def __init__(self, solver, coarse_nodes: int, degree: int):
-        fem = solver.fem
-        mesh, n = fem.mesh, fem.n_nodes
-        real = fem.R.dtype
-        self.solver, self.n_nodes = solver, n
-        self._np = np.float64 if real == ti.f64 else np.float32
+    def __init__(self, solver):
+        self.solver = solver
+        self.rebuild()
+
+    def rebuild(self) -> None:
+        solver = self.solver
+        model, cg = solver.model, solver.cg
+        mesh, n = model.mesh(), model.n_nodes
+        coarse_nodes = cg.coarse_nodes if cg.coarse_nodes is not None else max(8, round(2.5 * math.sqrt(n)))
+        # By default the dense coarse product, (3 · 2.5 √n)² ≈ 56 n multiply-adds, stays under
+        # the ~135 n of a product with the fine matrix.
         grid = coarse_grid(mesh.points, coarse_nodes)
         embedding = EmbeddedSurface(mesh.points, np.zeros((0, 3), dtype=np.int64), grid.points, grid.tets)
         weights = np.where(np.abs(embedding.weights) > 1e-12, embedding.weights, 0.0)
+        weights[model.held != 0] = 0.0        # P's rows at held (and detached) nodes are zero
         used = np.unique(embedding.nodes[weights != 0])
-        self.n_coarse = len(used)
+        nc = self.n_coarse = len(used)
         coarse = np.searchsorted(used, embedding.nodes)          # renumbered; 0 where the weight is 0
         coarse[weights == 0] = 0
         self.coarse_points = grid.points[used]
-        self._weights, self._coarse = weights, coarse
-        self.A0 = rest_matrix(mesh, fem.material, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
-        self.theta, self.steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(self.A0), degree)
-
-        nc = self.n_coarse
-        # Coarse node -> its (4 fine node + corner) entries of nonzero weight, for the restriction.
-        entries = np.flatnonzero(weights.ravel())
-        entries = entries[np.argsort(coarse.ravel()[entries], kind="stable")]
-        offsets = np.zeros(nc + 1, dtype=np.int32)
-        np.cumsum(np.bincount(coarse.ravel()[entries], minlength=nc), out=offsets[1:])
-        with backend.fields_of(self):
-            self.nodes = int_field(n, 4)
-            self.weights = ti.Vector.field(4, real, n)
-            self.fine_offsets = int_field(nc + 1)
-            self.fine_entries = int_field(len(entries))
-            self.coarse_inverse = ti.Matrix.field(3, 3, real, (nc, nc))
-            self.R = ti.Matrix.field(3, 3, real, n)                  # nodal rotations
-            self.res = ti.Vector.field(3, real, n)
-            self.d = ti.Vector.field(3, real, n)
-            self.rc = ti.Vector.field(3, real, nc)
-            self.ec = ti.Vector.field(3, real, nc)
-            self._io = [ti.Vector.field(3, real, n) for _ in range(2)] + [ti.field(real, 1)]
-        self.nodes.from_numpy(coarse.astype(np.int32))
-        self.fine_offsets.from_numpy(offsets)
-        self.fine_entries.from_numpy(entries.astype(np.int32))
-        self.R.from_numpy(np.tile(np.eye(3, dtype=self._np), (n, 1, 1)))
-        self._tol = fem.rotation_tolerance
-
-    def set_fixed(self, mask: np.ndarray) -> None:
-        """Zero P's rows at the fixed nodes and invert the rest Galerkin operator Pᵀ A₀ P on the
-        coarse dofs that keep a nonzero column."""
-        n, nc = self.n_nodes, self.n_coarse
-        weights = np.where(mask[:, None] != 0, 0.0, self._weights)
+        A0 = rest_matrix(mesh, model.material, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
+        linked = np.repeat(model.mass > 0, 3)            # detached nodes have empty rows
+        theta, steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(A0[linked][:, linked]),
+                                              cg.smoothing_degree)
+        # The rest Galerkin operator Pᵀ A₀ P, inverted on the coarse dofs that keep a nonzero column.
         rows = np.repeat(np.arange(n), 4)
-        P = sp.kron(sp.csr_matrix((weights.ravel(), (rows, self._coarse.ravel())), shape=(n, nc)),
-                    sp.eye(3), format="csr")
-        Ac = (P.T @ self.A0 @ P).toarray()
+        P = sp.kron(sp.csr_matrix((weights.ravel(), (rows, coarse.ravel())), shape=(n, nc)), sp.eye(3), format="csr")
+        Ac = (P.T @ A0 @ P).toarray()
         active = np.flatnonzero(np.diag(Ac) > 1e-12 * np.abs(np.diag(Ac)).max())
         C = np.zeros_like(Ac)
         C[np.ix_(active, active)] = scipy.linalg.cho_solve(
             scipy.linalg.cho_factor(Ac[np.ix_(active, active)]), np.eye(len(active)))
         C = 0.5 * (C + C.T)
-        self.weights.from_numpy(weights.astype(self._np))
-        self.coarse_inverse.from_numpy(C.reshape(nc, 3, nc, 3).transpose(0, 2, 1, 3).astype(self._np))
+        # Coarse node -> its (4 fine node + corner) entries of nonzero weight, for the restriction.
+        entries = np.flatnonzero(weights.ravel())
+        entries = entries[np.argsort(coarse.ravel()[entries], kind="stable")]
+        offsets = np.zeros(nc + 1, dtype=np.int32)
+        np.cumsum(np.bincount(coarse.ravel()[entries], minlength=nc), out=offsets[1:])
 
-    # ---- Taichi functions, called at the top level of the solver's kernels ---------------------
-
-    @ti.func
-    def update_rotations(self):
-        fem = self.solver.fem
-        for v in range(self.n_nodes):
-            self.R[v] = nodal_rotation(fem.R, fem.incidence_offsets, fem.incidence, v, self._tol)
-
-    @ti.func
-    def _residual(self, r, z, flags: ti.template(), slot: ti.template()):
-        self.solver.multiply(z)
-        for v in range(self.n_nodes):  # res = r - A z
-            if flags[slot] == 0:
-                self.res[v] = r[v] - self.solver.operator_row(v, z)
-
-    @ti.func
-    def _smooth(self, r, z, flags: ti.template(), slot: ti.template(), from_zero: ti.template()):
-        """z += S res (Chebyshev in D⁻¹A); from zero, res = r and z = S r."""
-        for v in range(self.n_nodes):
-            if flags[slot] == 0:
-                if ti.static(from_zero):
-                    self.res[v] = r[v]
-                    z[v] = ti.Vector([0.0, 0.0, 0.0])
-                d = (self.solver.block_inverse[v] @ self.res[v]) / self.theta
-                self.d[v] = d
-                z[v] = z[v] + d
-        for k in ti.static(range(len(self.steps))):
-            self.solver.multiply(self.d)
-            for v in range(self.n_nodes):
-                if flags[slot] == 0:
-                    self.res[v] = self.res[v] - self.solver.operator_row(v, self.d)
-            for v in range(self.n_nodes):
-                if flags[slot] == 0:
-                    d = self.steps[k][0] * self.d[v] + self.steps[k][1] * (self.solver.block_inverse[v] @ self.res[v])
-                    self.d[v] = d
-                    z[v] = z[v] + d
-
-    @ti.func
-    def _coarse_correction(self, z, flags: ti.template(), slot: ti.template()):
-        """z += R P A_c⁻¹ Pᵀ Rᵀ res."""
-        for c in range(self.n_coarse):  # restriction: a gather over the fine nodes around c
-            if flags[slot] == 0:
-                s = ti.Vector([0.0, 0.0, 0.0])
-                for k in range(self.fine_offsets[c], self.fine_offsets[c + 1]):
-                    v, corner = self.fine_entries[k] // 4, self.fine_entries[k] % 4
-                    s += self.weights[v][corner] * (self.R[v].transpose() @ self.res[v])
-                self.rc[c] = s
-        for c in range(self.n_coarse):
-            if flags[slot] == 0:
-                s = ti.Vector([0.0, 0.0, 0.0])
-                for j in range(self.n_coarse):
-                    s += self.coarse_inverse[c, j] @ self.rc[j]
-                self.ec[c] = s
-        for v in range(self.n_nodes):  # prolongation
-            if flags[slot] == 0:
-                s = ti.Vector([0.0, 0.0, 0.0])
-                for corner in ti.static(range(4)):
-                    s += self.weights[v][corner] * self.ec[self.nodes[v][corner]]
-                z[v] = z[v] + self.R[v] @ s
-
-    @ti.func
-    def apply(self, r, z, flags: ti.template(), slot: ti.template()):
-        """z = B r, one symmetric V-cycle; every loop is skipped while flags[slot] ≠ 0 (the
-        solver's "converged" flag)."""
-        self._smooth(r, z, flags, slot, True)
-        self._residual(r, z, flags, slot)
-        self._coarse_correction(z, flags, slot)
-        self._residual(r, z, flags, slot)
-        self._smooth(r, z, flags, slot, False)
+        real, np_real = backend.current().real, real_numpy()
+        vec3, mat3, vec4 = ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.vector(4, real)
+        capacity = model.node_capacity
+        padded_nodes = np.zeros((capacity, 4), dtype=np.int32)
+        padded_nodes[:n] = coarse
+        padded_weights = np.zeros((capacity, 4), dtype=np_real)
+        padded_weights[:n] = weights
+        arrays = dict(counts=ti.ndarray(ti.i32, 1), nodes=ti.ndarray(ti.types.vector(4, ti.i32), capacity),
+                      weights=ti.ndarray(vec4, capacity), fine_offsets=ti.ndarray(ti.i32, nc + 1),
+                      fine_entries=ti.ndarray(ti.i32, max(1, len(entries))),
+                      coarse_inverse=ti.ndarray(mat3, (nc, nc)), R=ti.ndarray(mat3, capacity),
+                      res=ti.ndarray(vec3, capacity), d=ti.ndarray(vec3, capacity),
+                      rc=ti.ndarray(vec3, nc), ec=ti.ndarray(vec3, nc),
+                      coefficients=ti.ndarray(real, 1 + 2 * len(steps)))
+        arrays["counts"].from_numpy(np.array([nc], dtype=np.int32))
+        arrays["nodes"].from_numpy(padded_nodes)
+        arrays["weights"].from_numpy(padded_weights)
+        arrays["fine_offsets"].from_numpy(offsets)
+        if len(entries):
+            arrays["fine_entries"].from_numpy(entries.astype(np.int32))
+        arrays["coarse_inverse"].from_numpy(C.reshape(nc, 3, nc, 3).transpose(0, 2, 1, 3).astype(np_real))
+        arrays["R"].from_numpy(np.tile(np.eye(3, dtype=np_real), (capacity, 1, 1)))
+        arrays["coefficients"].from_numpy(np.array([theta] + [c for step in steps for c in step], dtype=np_real))
+        self.A0, self.theta, self.steps = A0, theta, steps
+        self.arrays = arrays
+        self.pack = MULTIGRID(**arrays)
+        self._io = [ti.ndarray(vec3, capacity) for _ in range(2)]
 
     # ---- standalone launch (tests) -----------------------------------------------------------
 
-    @ti.kernel
-    def _apply_kernel(self, r: ti.template(), z: ti.template(), flags: ti.template()):
-        self.apply(r, z, flags, 0)
-
     def apply_numpy(self, r: np.ndarray) -> np.ndarray:
         """B r for residuals r (n, 3), with the matrix and rotations of the solver's last step."""
-        src, dst, flags = self._io
-        src.from_numpy(np.asarray(r, dtype=self._np))
-        self._apply_kernel(src, dst, flags)
-        return dst.to_numpy().astype(np.float64)
+        src, dst = self._io
+        n = self.solver.model.n_nodes
+        padded = np.zeros((src.shape[0], 3), dtype=real_numpy())
+        padded[:n] = r
+        src.from_numpy(padded)
+        ie.apply_preconditioner(self.solver._step_pack(), self.solver.scheme, src, dst)
+        return dst.to_numpy()[:n].astype(np.float64)
 
+
+# ---- Taichi functions, called at the top level of the solver's kernels over its argpack `k` -------
+
+
+@ti.func
+def update_rotations(k: ti.template(), tol):
+    for v in range(k.model.counts[0]):
+        k.multigrid.R[v] = nodal_rotation(k.fem.R, k.model.valence, k.model.incidence, v, tol)
+
+
+@ti.func
+def _running(k: ti.template()):
+    return k.state.scalars[ie.DONE] == 0
+
+
+@ti.func
+def _residual(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
+    ie.multiply(k, o, z)
+    mass_factor, stiffness_factor = ie.factors(k)
+    for v in range(k.model.counts[0]):  # res = r - A z
+        if _running(k):
+            k.multigrid.res[v] = r[v] - ie.operator_row(k, o, v, z, mass_factor, stiffness_factor)
+
+
+@ti.func
+def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template(), from_zero: ti.template()):
+    """z += S res (Chebyshev in D⁻¹A); from zero, res = r and z = S r."""
+    for v in range(k.model.counts[0]):
+        if _running(k):
+            if ti.static(from_zero):
+                k.multigrid.res[v] = r[v]
+                z[v] = ti.Vector([0.0, 0.0, 0.0])
+            d = (k.state.block_inverse[v] @ k.multigrid.res[v]) / k.multigrid.coefficients[0]
+            k.multigrid.d[v] = d
+            z[v] = z[v] + d
+    for step in ti.static(range(o.smoothing_degree - 1)):
+        ie.multiply(k, o, k.multigrid.d)
+        mass_factor, stiffness_factor = ie.factors(k)
+        for v in range(k.model.counts[0]):
+            if _running(k):
+                k.multigrid.res[v] = k.multigrid.res[v] - ie.operator_row(k, o, v, k.multigrid.d, mass_factor,
+                                                                          stiffness_factor)
+        for v in range(k.model.counts[0]):
+            if _running(k):
+                d = k.multigrid.coefficients[1 + 2 * step] * k.multigrid.d[v] + k.multigrid.coefficients[2 + 2 * step] * (k.state.block_inverse[v] @ k.multigrid.res[v])
+                k.multigrid.d[v] = d
+                z[v] = z[v] + d
+
+
+@ti.func
+def _coarse_correction(k: ti.template(), z: ti.template()):
+    """z += R P A_c⁻¹ Pᵀ Rᵀ res."""
+    for c in range(k.multigrid.counts[0]):  # restriction: a gather over the fine nodes around c
+        if _running(k):
+            s = ti.Vector([0.0, 0.0, 0.0])
+            for j in range(k.multigrid.fine_offsets[c], k.multigrid.fine_offsets[c + 1]):
+                v, corner = k.multigrid.fine_entries[j] // 4, k.multigrid.fine_entries[j] % 4
+                s += k.multigrid.weights[v][corner] * (k.multigrid.R[v].transpose() @ k.multigrid.res[v])
+            k.multigrid.rc[c] = s
+    for c in range(k.multigrid.counts[0]):
+        if _running(k):
+            s = ti.Vector([0.0, 0.0, 0.0])
+            for j in range(k.multigrid.counts[0]):
+                s += k.multigrid.coarse_inverse[c, j] @ k.multigrid.rc[j]
+            k.multigrid.ec[c] = s
+    for v in range(k.model.counts[0]):  # prolongation
+        if _running(k):
+            s = ti.Vector([0.0, 0.0, 0.0])
+            for corner in ti.static(range(4)):
+                s += k.multigrid.weights[v][corner] * k.multigrid.ec[k.multigrid.nodes[v][corner]]
+            z[v] = z[v] + k.multigrid.R[v] @ s
+
+
+@ti.func
+def apply(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
+    """z = B r, one symmetric V-cycle; every loop is skipped once the solver's CG has converged."""
+    _smooth(k, o, r, z, True)
+    _residual(k, o, r, z)
+    _coarse_correction(k, z)
+    _residual(k, o, r, z)
+    _smooth(k, o, r, z, False)

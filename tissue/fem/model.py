@@ -1,0 +1,363 @@
+"""What a soft body *is*: rest shape, element rest data, material per element, lumped mass, held
+nodes and the gather index, in capacity-sized storage with active counts, edited in place.
+
+The arrays are Taichi ndarrays: a kernel over `ti.types.ndarray()` arguments compiles once per
+element type and then serves arrays of any size, so a body of another mesh, or a body whose
+topology changed, reuses every compiled kernel. The numpy mirrors are the source of truth for
+edits; an edit changes them and uploads what changed. When an edit needs more room than the
+capacity, the arrays double (`growths` counts it) and `version` tells the state and the operators
+built on the model to resize theirs; nothing recompiles.
+
+Elements are kept compact: removing element e moves the last element into its slot (the
+returned map says where every element went). Nodes are never removed: a node left without
+elements is `DETACHED` and the solver keeps it still.
+
+Kernels read a model through its argpack (`model.pack`):
+    counts      i32 (2,): nodes, elements in use
+    rest        vec3 (nodes)         held  i32 (nodes): 0 free, HELD, DETACHED
+    mass        real (nodes)         lumped, Σ ρ V / 4 over incident elements
+    tets        vec4 i32 (elements)
+    Dm_inv      mat3 (elements)      inverse rest edge matrix
+    rest_frame  mat3 (elements)      rest edge frame (SOFA's "large" rotations)
+    elastic     vec3 (elements)      V, λ, μ
+    valence     i32 (nodes)          incident element corners of each node …
+    incidence   i32 (nodes, slots)   … as 4 e + corner, the first `valence` slots of each row
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+import taichi as ti
+
+from .. import backend
+from ..errors import TissueError
+from ..mesh import TetMesh
+from ..mesh.surface import OUTWARD_FACES
+from ..mesh.tetmesh import signed_volumes
+from .material import Material
+
+HELD, DETACHED = 1, 2
+MODEL = ti.types.argpack(counts=ti.types.ndarray(), rest=ti.types.ndarray(), held=ti.types.ndarray(),
+                         mass=ti.types.ndarray(), tets=ti.types.ndarray(), Dm_inv=ti.types.ndarray(),
+                         rest_frame=ti.types.ndarray(), elastic=ti.types.ndarray(),
+                         valence=ti.types.ndarray(), incidence=ti.types.ndarray())
+
+
+def real_numpy():
+    return np.float64 if backend.current().precision == "f64" else np.float32
+
+
+def edge_frames(points: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (columns) of triangles (k, 3, 3): x along ab, z normal (SOFA's "large")."""
+    a, b, c = points[:, 0], points[:, 1], points[:, 2]
+    ex = b - a
+    ex /= np.linalg.norm(ex, axis=1, keepdims=True)
+    ez = np.cross(ex, c - a)
+    ez /= np.linalg.norm(ez, axis=1, keepdims=True)
+    return np.stack([ex, np.cross(ez, ex), ez], axis=2)
+
+
+@dataclass(frozen=True)
+class Edit:
+    """What one topology edit did, for the structures built on the model (`BodyModel.subscribe`):
+    elements `added` (ids), and elements moved from `moved_from` to `moved_to` to fill the slots
+    of removed ones."""
+
+    added: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    moved_from: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    moved_to: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+class BodyModel:
+    """The rest state of one soft body; see the module docstring."""
+
+    def __init__(self, mesh: TetMesh, material: Material, node_capacity: int | None = None,
+                 element_capacity: int | None = None, slots: int | None = None):
+        n, m = mesh.n_points, mesh.n_tets
+        self.material = material
+        self.n_nodes, self.n_elements = 0, 0
+        self.version = 0      # bumped whenever the arrays are re-allocated (growth)
+        self.growths = 0
+        self._real = real_numpy()
+        self._faces = None
+        self._subscribers: list[weakref.ref] = []
+        valence = np.bincount(mesh.tets.reshape(-1), minlength=n)
+        self._allocate(max(node_capacity or n, n), max(element_capacity or m, m),
+                       max(slots or int(valence.max()) + 4, int(valence.max())))
+        self.rest = self._rest[:0]
+        self.add_nodes(mesh.points)
+        self.add_elements(mesh.tets, material)
+        self.source = mesh.source
+
+    # ---- storage -----------------------------------------------------------------------------
+
+    def _allocate(self, nodes: int, elements: int, slots: int) -> None:
+        old = getattr(self, "_rest", None)
+        n, m = self.n_nodes, self.n_elements
+
+        def grown(name, shape, dtype, fill=0):
+            array = np.full(shape, fill, dtype=dtype)
+            if old is not None:
+                previous = getattr(self, name)
+                array[tuple(slice(0, s) for s in previous.shape)] = previous
+            return array
+
+        self._rest = grown("_rest", (nodes, 3), np.float64)
+        self._held = grown("_held", nodes, np.int32)
+        self._mass = grown("_mass", nodes, np.float64)
+        self._valence = grown("_valence", nodes, np.int32)
+        self._incidence = grown("_incidence", (nodes, slots), np.int32, -1)
+        self._tets = grown("_tets", (elements, 4), np.int32)
+        self._Dm_inv = grown("_Dm_inv", (elements, 3, 3), np.float64)
+        self._rest_frame = grown("_rest_frame", (elements, 3, 3), np.float64)
+        self._elastic = grown("_elastic", (elements, 3), np.float64)
+        self._density = grown("_density", elements, np.float64)
+        self.arrays = dict(
+            counts=ti.ndarray(ti.i32, 2),
+            rest=ti.ndarray(ti.types.vector(3, real_ti()), nodes),
+            held=ti.ndarray(ti.i32, nodes),
+            mass=ti.ndarray(real_ti(), nodes),
+            tets=ti.ndarray(ti.types.vector(4, ti.i32), elements),
+            Dm_inv=ti.ndarray(ti.types.matrix(3, 3, real_ti()), elements),
+            rest_frame=ti.ndarray(ti.types.matrix(3, 3, real_ti()), elements),
+            elastic=ti.ndarray(ti.types.vector(3, real_ti()), elements),
+            valence=ti.ndarray(ti.i32, nodes),
+            incidence=ti.ndarray(ti.i32, (nodes, slots)))
+        self.pack = MODEL(**self.arrays)
+        if old is not None:
+            self.version += 1
+            self.growths += 1
+            self._upload(*self.arrays)
+
+    @property
+    def node_capacity(self) -> int:
+        return len(self._rest)
+
+    @property
+    def element_capacity(self) -> int:
+        return len(self._tets)
+
+    def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
+        """Room for this many more nodes and elements and slots per node, doubling what is short."""
+        need_n, need_m = self.n_nodes + nodes, self.n_elements + elements
+        need_s = max(slots, self._incidence.shape[1])
+        if need_n > self.node_capacity or need_m > self.element_capacity or need_s > self._incidence.shape[1]:
+            self._allocate(max(need_n, 2 * self.node_capacity if need_n > self.node_capacity else self.node_capacity),
+                           max(need_m, 2 * self.element_capacity if need_m > self.element_capacity
+                               else self.element_capacity),
+                           need_s if need_s <= self._incidence.shape[1] else max(need_s, 2 * self._incidence.shape[1]))
+
+    def _upload(self, *names: str) -> None:
+        real = self._real
+        for name in names:
+            if name == "counts":
+                self.arrays["counts"].from_numpy(np.array([self.n_nodes, self.n_elements], dtype=np.int32))
+                continue
+            values = getattr(self, "_" + name)
+            self.arrays[name].from_numpy(values.astype(real) if values.dtype == np.float64 else values)
+
+    # ---- what the rest of the code reads -------------------------------------------------------
+
+    @property
+    def tets(self) -> np.ndarray:
+        return self._tets[:self.n_elements]
+
+    @property
+    def points(self) -> np.ndarray:
+        return self._rest[:self.n_nodes]
+
+    @property
+    def mass(self) -> np.ndarray:
+        return self._mass[:self.n_nodes]
+
+    @property
+    def held(self) -> np.ndarray:
+        return self._held[:self.n_nodes]
+
+    @property
+    def elastic(self) -> np.ndarray:
+        """(elements, 3): volume, λ, μ of each element."""
+        return self._elastic[:self.n_elements]
+
+    @property
+    def Dm_inv(self) -> np.ndarray:
+        return self._Dm_inv[:self.n_elements]
+
+    @property
+    def volumes(self) -> np.ndarray:
+        return self._elastic[:self.n_elements, 0]
+
+    @property
+    def incidence_rows(self) -> np.ndarray:
+        """(node capacity, slots) corner codes 4 e + a of each node's elements; −1 past its valence."""
+        return self._incidence
+
+    @property
+    def incidence_capacity(self) -> int:
+        return self._incidence.size
+
+    @property
+    def max_valence(self) -> int:
+        return int(self._valence[:self.n_nodes].max(initial=0))
+
+    def mesh(self) -> TetMesh:
+        """The elements in use as a TetMesh (all nodes kept, detached ones too)."""
+        return TetMesh(self.points.copy(), self.tets.astype(np.int64), source=self.source)
+
+    def incidence_csr(self) -> tuple[np.ndarray, np.ndarray]:
+        """The gather index as CSR: offsets (nodes + 1) and corner codes 4 e + a."""
+        valence = self._valence[:self.n_nodes]
+        offsets = np.zeros(self.n_nodes + 1, dtype=np.int32)
+        np.cumsum(valence, out=offsets[1:])
+        rows = self._incidence[:self.n_nodes]
+        return offsets, rows[np.arange(rows.shape[1]) < valence[:, None]]
+
+    def boundary_faces(self) -> np.ndarray:
+        """(k, 3) outward boundary triangles of the elements in use (kept up to date by the edits)."""
+        if self._faces is None:
+            from ..mesh import boundary_faces
+
+            self._faces = boundary_faces(self.tets)
+        return self._faces
+
+    # ---- held nodes ---------------------------------------------------------------------------
+
+    def set_held(self, nodes) -> None:
+        """Hold exactly these nodes (zero velocity); detached nodes stay detached."""
+        nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
+        bad = nodes[(nodes < 0) | (nodes >= self.n_nodes)]
+        if len(bad):
+            raise TissueError(f"fixed: node ids {bad[:10].tolist()} out of range [0, {self.n_nodes})")
+        held = self._held[:self.n_nodes]
+        held[held == HELD] = 0
+        held[nodes[held[nodes] != DETACHED]] = HELD
+        self._upload("held")
+
+    @property
+    def held_nodes(self) -> np.ndarray:
+        return np.flatnonzero(self.held == HELD)
+
+    # ---- topology edits ------------------------------------------------------------------------
+
+    def subscribe(self, structure) -> None:
+        """Call `structure.topology_changed(edit)` after each element edit (held weakly)."""
+        self._subscribers.append(weakref.ref(structure))
+
+    def _notify(self, edit: Edit) -> None:
+        alive = [ref for ref in self._subscribers if ref() is not None]
+        self._subscribers = alive
+        for ref in alive:
+            ref().topology_changed(edit)
+
+    def add_nodes(self, points) -> np.ndarray:
+        """Append nodes at these rest positions (k, 3); returns their ids. They stay detached
+        (still) until an element uses them."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(points).all():
+            raise TissueError("add_nodes: non-finite coordinates")
+        self._reserve(nodes=len(points))
+        ids = np.arange(self.n_nodes, self.n_nodes + len(points))
+        self._rest[ids] = points
+        self._held[ids] = DETACHED
+        self._mass[ids] = 0.0
+        self._valence[ids] = 0
+        self._incidence[ids] = -1
+        self.n_nodes += len(points)
+        self._faces = None
+        self._upload("counts", "rest", "held", "mass", "valence")
+        return ids
+
+    def add_elements(self, tets, material: Material | None = None) -> np.ndarray:
+        """Append positively oriented, non-degenerate tetrahedra (k, 4) over existing nodes, of
+        `material` (default: the body's); returns their ids."""
+        tets = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+        material = material or self.material
+        bad = np.flatnonzero(((tets < 0) | (tets >= self.n_nodes)).any(axis=1))
+        if len(bad):
+            raise TissueError(f"add_elements: tetrahedra {bad[:10].tolist()} index nodes out of range "
+                              f"[0, {self.n_nodes})")
+        X = self._rest
+        volumes = signed_volumes(X[:self.n_nodes], tets)
+        bad = np.flatnonzero(~(volumes > 0))
+        if len(bad):
+            raise TissueError(f"add_elements: tetrahedra {bad[:10].tolist()} are inverted or degenerate "
+                              f"(signed volumes {volumes[bad[:3]].tolist()})")
+        per_node = np.bincount(tets.reshape(-1), minlength=self.n_nodes)
+        self._reserve(elements=len(tets), slots=int((self._valence[:self.n_nodes] + per_node).max(initial=0)))
+        ids = np.arange(self.n_elements, self.n_elements + len(tets))
+        Dm = np.stack([X[tets[:, i]] - X[tets[:, 0]] for i in (1, 2, 3)], axis=2)
+        lam, mu = material.lame
+        self._tets[ids] = tets
+        self._Dm_inv[ids] = np.linalg.inv(Dm)
+        self._rest_frame[ids] = edge_frames(X[tets[:, :3]])
+        self._elastic[ids] = np.column_stack([volumes, np.full(len(tets), lam), np.full(len(tets), mu)])
+        self._density[ids] = material.density
+        self.n_elements += len(tets)
+        self._link(ids, +1)
+        self._upload("counts", "tets", "Dm_inv", "rest_frame", "elastic")
+        self._notify(Edit(added=ids))
+        return ids
+
+    def remove_elements(self, ids) -> np.ndarray:
+        """Remove these elements; returns where every previous element went (−1: removed). The
+        last elements move into the freed slots, so the rest stay contiguous."""
+        ids = np.unique(np.asarray(ids, dtype=np.int64).reshape(-1))
+        m = self.n_elements
+        if len(ids) and (ids[0] < 0 or ids[-1] >= m):
+            raise TissueError(f"remove_elements: ids out of range [0, {m}): {ids[(ids < 0) | (ids >= m)][:10].tolist()}")
+        self._link(ids, -1)
+        keep = np.ones(m, dtype=bool)
+        keep[ids] = False
+        kept_tail = np.flatnonzero(keep[m - len(ids):]) + m - len(ids)   # survivors that must move
+        holes = ids[ids < m - len(ids)]                                   # freed slots they fill
+        where = np.where(keep, np.arange(m), -1)
+        if len(holes):
+            self._link(kept_tail, -1)
+            for name in ("_tets", "_Dm_inv", "_rest_frame", "_elastic", "_density"):
+                array = getattr(self, name)
+                array[holes] = array[kept_tail]
+            where[kept_tail] = holes
+        self.n_elements = m - len(ids)
+        if len(holes):
+            self._link(holes, +1)
+        self._upload("counts", "tets", "Dm_inv", "rest_frame", "elastic")
+        self._notify(Edit(moved_from=kept_tail, moved_to=holes))
+        return where
+
+    def _link(self, ids: np.ndarray, sign: int) -> None:
+        """Add (+1) or take away (−1) elements' mass, gather entries and boundary faces."""
+        if len(ids) == 0:
+            return
+        tets = self._tets[ids]
+        share = np.repeat(self._density[ids] * self._elastic[ids, 0] / 4.0, 4)
+        np.add.at(self._mass, tets.reshape(-1), sign * share)
+        codes = (4 * ids[:, None] + np.arange(4)).reshape(-1).astype(np.int32)
+        nodes = tets.reshape(-1)
+        if sign > 0:   # each corner goes to its node's next free slot (ranked within the node)
+            order = np.argsort(nodes, kind="stable")
+            sorted_nodes = nodes[order]
+            first = np.searchsorted(sorted_nodes, sorted_nodes)
+            slot = self._valence[sorted_nodes] + np.arange(len(order)) - first
+            self._incidence[sorted_nodes, slot] = codes[order]
+            np.add.at(self._valence, nodes, 1)
+        else:
+            for v, code in zip(nodes, codes):
+                row, k = self._incidence[v], self._valence[v] - 1
+                j = int(np.flatnonzero(row[:k + 1] == code)[0])
+                row[j] = row[k]          # the last entry fills the gap
+                row[k] = -1
+                self._valence[v] = k
+        touched = np.unique(nodes)
+        self._mass[touched[self._valence[touched] == 0]] = 0.0    # no rounding residue
+        held = self._held
+        held[touched[(self._valence[touched] == 0)]] = DETACHED
+        held[touched[(self._valence[touched] > 0) & (held[touched] == DETACHED)]] = 0
+        self._faces = None
+        self._upload("mass", "held", "valence", "incidence")
+
+
+def real_ti():
+    return backend.current().real

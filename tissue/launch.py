@@ -1,0 +1,126 @@
+"""Replayed kernel launches, for the kernels a step runs every time over the same arrays.
+
+Taichi 1.7 sets every argument of every launch from Python, ~6-15 µs per ndarray (type checks,
+the template key, one setter call), and looks the compiled kernel up again; a step's kernel over a
+body's ~30 ndarrays would spend more time there than computing on a small mesh. `replayed(kernel)`
+records the launch context of a kernel's first launch with a given set of arguments (the same
+argpack objects, the same template and scalar values) and replays it afterwards: the context
+holds the arrays' addresses, not their contents, so a replay computes on the current data. After
+the first launch each ndarray is set once more in the context by its host address (as Taichi does
+for a numpy array), because the CPU launcher leaves the context holding allocation handles it has
+already marked as addresses.
+Arguments that are new objects (a re-allocated argpack after growth) record a new context.
+
+The context belongs to Taichi's internals (`taichi.lang.kernel_impl`, pinned to 1.7 by setup.cfg),
+so replays are used on the CPU only, where the tests exercise them; other archs launch normally.
+"""
+
+from __future__ import annotations
+
+from taichi.lang import impl, runtime_ops
+from taichi.lang._ndarray import Ndarray
+from taichi.lang.argpack import ArgPack, ArgPackType
+from taichi.lang.matrix import MatrixType
+from taichi.types import primitive_types
+from taichi.types import template
+
+from . import backend
+
+
+class _Recorder:
+    """Stands in for Taichi's program during one launch, to keep what it launches."""
+
+    def __init__(self, prog):
+        self.prog, self.launched = prog, None
+
+    def launch_kernel(self, compiled, context):
+        self.launched = (compiled, context)
+        self.prog.launch_kernel(compiled, context)
+
+    def __getattr__(self, name):
+        return getattr(self.prog, name)
+
+
+class Replayed:
+    def __init__(self, kernel):
+        self.kernel = kernel
+        self.primal = kernel._primal
+        self.contexts: dict[tuple, tuple] = {}
+
+    def __call__(self, *args):
+        if backend.current().arch != "cpu":
+            return self.kernel(*args)
+        key = tuple(("pack", id(a)) if isinstance(a, ArgPack) else a for a in args)
+        hit = self.contexts.get(key)
+        if hit is None:
+            return self._record(key, args)
+        compiled, context, _ = hit
+        impl.get_runtime().prog.launch_kernel(compiled, context)
+        return self._returns(context)
+
+    def _record(self, key, args):
+        runtime = impl.get_runtime()
+        recorder = _Recorder(runtime.prog)
+        runtime.prog = recorder
+        try:
+            result = self.kernel(*args)
+        finally:
+            runtime.prog = recorder.prog
+        if recorder.launched is not None:
+            if len(self.contexts) > 64:       # arguments that keep changing: keep the newest only
+                self.contexts.clear()
+            compiled, context = recorder.launched
+            prog = recorder.prog
+            for index, array in self._ndarray_slots(args):
+                address = prog.get_ndarray_data_ptr_as_int(array.arr)
+                context.set_arg_external_array_with_shape(index, address, array._get_nelement() * array._get_element_size(),
+                                                          list(array.shape), 0)
+            self.contexts[key] = (compiled, context, args)   # args: keeps the arrays alive
+        return result
+
+    def _ndarray_slots(self, args) -> list[tuple[tuple[int], Ndarray]]:
+        """Each ndarray of the arguments with its slot in the launch context, in Taichi's order:
+        top-level ndarrays at their argument's position (templates not counted), then those inside
+        argpacks, depth first, after all arguments."""
+        slots, packed, position = [], [], 0
+        for arg, parameter in zip(args, self.primal.arguments):
+            if isinstance(parameter.annotation, template):
+                continue
+            if isinstance(arg, Ndarray):
+                slots.append(((position,), arg))
+            elif isinstance(parameter.annotation, ArgPackType):
+                packed.extend(_flatten(arg, parameter.annotation))
+            position += 1
+        return slots + [((position + j,), array) for j, array in enumerate(packed)]
+
+    def _returns(self, context):
+        types = self.primal.return_type
+        if types is None:
+            return None
+        runtime_ops.sync()
+        values = [_read_return(self.primal, context, t, i) for i, t in enumerate(types)]
+        return values[0] if len(values) == 1 else values
+
+
+def _flatten(pack: ArgPack, annotation: ArgPackType) -> list[Ndarray]:
+    arrays = []
+    for name, member in annotation.members.items():
+        if isinstance(member, ArgPackType):
+            arrays.extend(_flatten(pack[name], member))
+        elif isinstance(pack[name], Ndarray):
+            arrays.append(pack[name])
+    return arrays
+
+
+def _read_return(primal, context, kind, i):
+    """A vector of floats as a tuple (Taichi builds a Matrix, which costs more than the step of a
+    small mesh), anything else as Taichi reads it."""
+    if isinstance(kind, MatrixType) and kind.ndim == 1 and kind.dtype in primitive_types.real_types:
+        return tuple(context.get_struct_ret_float((i, j)) for j in range(kind.n))
+    return primal.construct_kernel_ret(context, kind, (i,))
+
+
+def replayed(kernel) -> Replayed:
+    """`kernel`, launched by replaying its recorded context when the arguments repeat."""
+    return Replayed(kernel)
+
