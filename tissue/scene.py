@@ -21,7 +21,9 @@ Simulation(scene, arch=None, precision=None)
     `ImplicitEuler`, its held nodes and boundary triangles) and then the stages of a step, from the
     list `STAGES`. `.step()` runs the stages in order, timing each in `.stats` (a `tissue.stats.Stats`:
     per-stage wall time and counters, the bodies' own stages merged in as "stage: sub-stage");
-    `.run(steps, progress=..., callback=...)`; `.state()` gives numpy arrays for output.
+    `.run(steps, progress=..., callback=...)`; `.state()` gives numpy arrays for output. The one-off
+    costs are apart: `.mesh_seconds` (building the meshes) and `.compiled()` (kernel compilation
+    since the simulation began; `.compile_seconds_by_step`: its share in each step).
 
 How a later layer plugs in (contact, attachments, haptics, cutting)
     1. Its settings are an `Options` dataclass in its own package (e.g. `tissue.contact.Contact`);
@@ -618,7 +620,8 @@ class Simulation:
         return self.stats.ms_per_step(skip)
 
     def compiled(self) -> compilation.Compiled:
-        """Kernel compilation since this simulation began: building it, its steps, its output."""
+        """Kernel compilation in this process since this simulation began: its build, steps and
+        output (and whatever else compiled meanwhile)."""
         return compilation.snapshot() - self._compiled_before
 
     def timing_table(self, skip: int = 1) -> str:
