@@ -1,5 +1,6 @@
 """Taichi is initialised once per test session (CPU, float64 unless TISSUE_ARCH says otherwise);
-the offline cache stays on so the suite does not spend its time compiling. `make test` runs a
+the offline cache stays on so the suite does not spend its time compiling. Generated meshes are
+cached in a folder of the session's own (unless TISSUE_CACHE is set), never in the user's home. `make test` runs a
 session per core (pytest-xdist, a test file per worker), so session fixtures are per worker."""
 
 import os
@@ -7,6 +8,16 @@ import os
 import pytest
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def mesh_cache(tmp_path_factory):
+    if os.environ.get("TISSUE_CACHE"):
+        yield
+        return
+    os.environ["TISSUE_CACHE"] = str(tmp_path_factory.mktemp("tissue-cache"))
+    yield
+    del os.environ["TISSUE_CACHE"]
 
 
 @pytest.fixture(scope="session")

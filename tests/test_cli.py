@@ -84,6 +84,10 @@ def test_run_without_render_writes_stats_and_a_pvd_and_keeps_other_files(capsys,
     assert pvd.count("<DataSet") == 4  # steps 0..3
     assert not list(out.glob("*.png")) and not (out / "animation.gif").exists()
     assert "ms/step" in stdout and "free_motion" in stdout
+    assert stats["kernel_compilation_seconds"] >= stats["kernel_compilation_seconds_in_steps"] >= 0
+    assert stats["kernels_compiled"] >= 0 and stats["mesh_generation_seconds"] >= 0
+    assert 0 <= stats["run_compile_seconds"] <= stats["run_seconds"]
+    assert "kernel compilation" in stdout and f"({stats['kernels_compiled']} kernels)" in stdout
 
 
 def test_run_with_render_writes_a_non_blank_png(capsys, tmp_path, backend):

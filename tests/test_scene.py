@@ -192,6 +192,47 @@ def test_simulation_builds_only_free_motion_and_steps(backend):
     assert body.nodal(stress).shape == (body.mesh.n_points,)
 
 
+def test_mesh_generation_and_kernel_compilation_are_reported_on_their_own(backend, monkeypatch):
+    import time
+
+    import taichi as ti
+
+    from tissue import scene as scene_module
+
+    make_mesh = scene_module._make_mesh
+
+    def slow_mesh(body, name):
+        time.sleep(0.05)
+        return make_mesh(body, name)
+
+    monkeypatch.setattr(scene_module, "_make_mesh", slow_mesh)
+    sim = Simulation(SmallBeam())
+    assert sim.mesh_seconds >= 0.05
+
+    @ti.kernel
+    def fresh(a: ti.f64) -> ti.f64:    # new to this process: compiled on the first step
+        return 2 * a
+
+    class Probe:
+        name = "probe"
+
+        def step(self, sim):
+            fresh(sim.time)
+
+    sim.stages.append(Probe())
+    sim.run(3)
+    first, *rest = sim.compile_seconds_by_step
+    assert first > 0 and rest == [0.0, 0.0]
+    summary = sim.summary()
+    assert summary["mesh_generation_seconds"] >= 0.05
+    assert summary["kernels_compiled"] == sim.compiled().count >= 1
+    assert summary["kernel_compilation_seconds_in_steps"] == pytest.approx(first, abs=1e-4)
+    assert summary["kernel_compilation_seconds"] >= summary["kernel_compilation_seconds_in_steps"]
+    table = sim.timing_table()
+    assert "(median, step 1 left out)" in table and "mesh generation" in table
+    assert f"({sim.compiled().count} kernels; {first:.3f} s of it in the steps, {first:.3f} s in step 1)" in table
+
+
 def test_a_registered_stage_plugs_in_and_is_timed(backend):
     calls = []
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import taichi as ti
 
+from . import compilation
 from .errors import TissueError
 
 ARCHS = ("auto", "cpu", "cuda", "vulkan")
@@ -65,6 +66,7 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
     fp = ti.f64 if precision == "f64" else ti.f32
     ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
             log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
+    compilation.install()
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:
         ti.reset()

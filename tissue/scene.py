@@ -21,7 +21,9 @@ Simulation(scene, arch=None, precision=None)
     `ImplicitEuler`, its held nodes and boundary triangles) and then the stages of a step, from the
     list `STAGES`. `.step()` runs the stages in order, timing each in `.stats` (a `tissue.stats.Stats`:
     per-stage wall time and counters, the bodies' own stages merged in as "stage: sub-stage");
-    `.run(steps, progress=..., callback=...)`; `.state()` gives numpy arrays for output.
+    `.run(steps, progress=..., callback=...)`; `.state()` gives numpy arrays for output. The one-off
+    costs are apart: `.mesh_seconds` (building the meshes) and `.compiled()` (kernel compilation
+    since the simulation began; `.compile_seconds_by_step`: its share in each step).
 
 How a later layer plugs in (contact, attachments, haptics, cutting)
     1. Its settings are an `Options` dataclass in its own package (e.g. `tissue.contact.Contact`);
@@ -44,6 +46,7 @@ How a later layer plugs in (contact, attachments, haptics, cutting)
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -51,7 +54,7 @@ from typing import Callable, Literal, Protocol
 
 import numpy as np
 
-from . import backend
+from . import backend, compilation
 from .errors import TissueError
 from .options import Options, apply_overrides, require, suggestion, validate
 from .stats import Stats
@@ -285,8 +288,21 @@ def _organ(name: str, tets: int):
     return organ_mesh(name, target_tets=tets)
 
 
+# Wall time this process has spent in build_mesh: a Simulation reports its share.
+_mesh_seconds = 0.0
+
+
 def build_mesh(body: SoftBody, name: str = "body"):
     """The body's TetMesh in its own frame (scaled, not yet posed)."""
+    global _mesh_seconds
+    start = time.perf_counter()
+    try:
+        return _make_mesh(body, name)
+    finally:
+        _mesh_seconds += time.perf_counter() - start
+
+
+def _make_mesh(body: SoftBody, name: str):
     from .mesh import beam, box, read_mesh
 
     kind = mesh_kind(body.mesh)
@@ -546,8 +562,12 @@ class Simulation:
         if not isinstance(scene, Scene):
             raise TissueError(f"Simulation: expected a Scene, got {type(scene).__name__}")
         self.scene = validate(scene)
+        self._compiled_before = compilation.snapshot()
         self.backend = backend.init(arch, precision)
+        meshes_before = _mesh_seconds
         self.bodies: dict[str, Body] = {name: Body(name, spec, scene) for name, spec in scene.bodies().items()}
+        self.mesh_seconds = _mesh_seconds - meshes_before
+        self.compile_seconds_by_step: list[float] = []
         self.stages: list[Stage] = [s for s in (build(self) for build in STAGES) if s is not None]
         self.stats = Stats()
         self.time = 0.0
@@ -558,6 +578,7 @@ class Simulation:
         return self.scene.dt
 
     def step(self) -> None:
+        compiled_before = compilation.seconds()
         for stage in self.stages:
             with self.stats.stage(stage.name):
                 stage.step(self)
@@ -568,6 +589,7 @@ class Simulation:
                     self.stats.times[f"{stage.name}: {sub}"].append(value)
                 if counters:
                     self.stats.count(**counters)
+        self.compile_seconds_by_step.append(compilation.seconds() - compiled_before)
         self.step_count += 1
         self.time = self.step_count * self.scene.dt
 
@@ -597,14 +619,28 @@ class Simulation:
         """Median ms per step of each stage and sub-stage ("stage: sub"), leaving out `skip` warm-up steps."""
         return self.stats.ms_per_step(skip)
 
+    def compiled(self) -> compilation.Compiled:
+        """Kernel compilation in this process since this simulation began: its build, steps and
+        output (and whatever else compiled meanwhile)."""
+        return compilation.snapshot() - self._compiled_before
+
     def timing_table(self, skip: int = 1) -> str:
-        """Median ms per step by stage, sub-stages indented under their stage."""
+        """Median ms per step by stage, sub-stages indented under their stage; then the one-off
+        costs: mesh generation and kernel compilation (with how much of it fell in the steps)."""
         ms = self.ms_per_step(skip)
         rows = [(("  " + k.split(": ", 1)[1]) if ": " in k else k, v) for k, v in ms.items()]
-        width = max([len(r[0]) for r in rows] + [len("total")])
-        lines = [f"{'stage':<{width}}  ms/step (median)"]
+        width = max([len(r[0]) for r in rows] + [len("kernel compilation")])
+        warm_up = "step 1" if skip == 1 else f"steps 1-{skip}"
+        left_out = 0 < skip < self.step_count
+        lines = [f"{'stage':<{width}}  ms/step (median{f', {warm_up} left out' if left_out else ''})"]
         lines += [f"{k:<{width}}  {v:10.3f}" for k, v in rows]
         lines.append(f"{'total':<{width}}  {sum(v for k, v in ms.items() if ': ' not in k):10.3f}")
+        compiled, in_steps = self.compiled(), self.compile_seconds_by_step
+        where = f"{sum(in_steps):.3f} s of it in the steps"
+        if left_out:
+            where += f", {sum(in_steps[:skip]):.3f} s in {warm_up}"
+        lines.append(f"{'mesh generation':<{width}}  {self.mesh_seconds:10.3f} s")
+        lines.append(f"{'kernel compilation':<{width}}  {compiled.seconds:10.3f} s  ({compiled.count} kernels; {where})")
         return "\n".join(lines)
 
     def summary(self) -> dict:
@@ -616,6 +652,10 @@ class Simulation:
             bodies={n: dict(nodes=b.mesh.n_points, tets=b.mesh.n_tets, held=len(b.fixed))
                     for n, b in self.bodies.items()},
             stages=[s.name for s in self.stages],
+            mesh_generation_seconds=round(self.mesh_seconds, 4),
+            kernel_compilation_seconds=round(self.compiled().seconds, 4),
+            kernels_compiled=self.compiled().count,
+            kernel_compilation_seconds_in_steps=round(sum(self.compile_seconds_by_step), 4),
             ms_per_step=self.ms_per_step(),
             ms_per_step_mean={k: 1e3 * float(np.mean(v[1:] if len(v) > 1 else v))
                               for k, v in self.stats.times.items() if v},

@@ -277,8 +277,14 @@ def organ_surface(name: str) -> tuple[np.ndarray, np.ndarray]:
 
 def organ_mesh(name: str, target_tets: int = 1300) -> TetMesh:
     """The organ called `name` filled with about `target_tets` tetrahedra (within a few per cent;
-    see `tissue.mesh.tetrahedralize` for the method and the quality reached)."""
-    from .tetrahedralize import tetrahedralize
+    see `tissue.mesh.tetrahedralize` for the method and the quality reached). Made once per machine:
+    later calls load it from the mesh cache (`tissue.mesh.cache`)."""
+    from .cache import cached_mesh
 
-    points, triangles = organ_surface(name)
-    return tetrahedralize(points, triangles, target_tets=target_tets, source=f"organ:{name}")
+    def make():
+        from .tetrahedralize import tetrahedralize
+
+        points, triangles = organ_surface(name)
+        return tetrahedralize(points, triangles, target_tets=target_tets, source=f"organ:{name}")
+
+    return cached_mesh(make, "organ", name=name, tets=int(target_tets))

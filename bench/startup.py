@@ -1,0 +1,92 @@
+"""Start-up cost of `tissue run`: the command's wall time from empty caches and from caches filled by others.
+
+    python -m bench.startup [--scenes incline liver_press liver beam] [--steps 10] [--arch cpu]
+
+Each measurement runs `tissue run NAME --no-render --steps N --out TMP` as a subprocess, with the
+Taichi offline cache (TI_OFFLINE_CACHE_FILE_PATH) and the mesh cache (TISSUE_CACHE) in folders of
+its own:
+    cold    both caches empty
+    warm    both caches filled first by runs of other scenes and settings (FILLERS, less the
+            timed command itself): what a user meets on a new scene or a new setting
+    again   the same command once more: everything cached
+Per run: the wall time, and from stats.json the seconds of mesh generation, of kernel compilation
+(and the kernels compiled), of simulation (the run phase without compilation) and the rest (Python
+imports, Taichi's start, output). Writes bench/results/startup.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench.common import ROOT, machine, print_machine, write_results
+
+SCENES = ("incline", "liver_press", "liver", "beam")
+FILLERS = (("beam",), ("liver", "--set", "dt=0.03"))
+
+
+def run(command: tuple[str, ...], caches: Path, steps: int, arch: str) -> dict:
+    """`tissue run` of `command` (scene and options) with the caches under `caches`; wall and split."""
+    out = caches / "out"
+    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(caches / "taichi"), TISSUE_CACHE=str(caches / "tissue"))
+    argv = [sys.executable, "-m", "tissue", "run", *command, "--no-render", "--steps", str(steps),
+            "--arch", arch, "--out", str(out)]
+    start = time.perf_counter()
+    done = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+    stats = json.loads((out / "stats.json").read_text())
+    split = dict(wall_s=wall, mesh_s=stats["mesh_generation_seconds"], compile_s=stats["kernel_compilation_seconds"],
+                 kernels=stats["kernels_compiled"], simulate_s=stats["run_seconds"] - stats["run_compile_seconds"])
+    split["other_s"] = wall - split["mesh_s"] - split["compile_s"] - split["simulate_s"]
+    return {k: round(v, 3) for k, v in split.items()}
+
+
+def measure(scene: str, steps: int, arch: str) -> list[dict]:
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
+        rows.append(dict(scene=scene, caches="cold", **run((scene,), Path(tmp), steps, arch)))
+    with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
+        fillers = [f for f in FILLERS if f != (scene,)]
+        for filler in fillers:
+            run(filler, Path(tmp), steps, arch)
+        rows.append(dict(scene=scene, caches="warm", filled_by=[" ".join(f) for f in fillers],
+                         **run((scene,), Path(tmp), steps, arch)))
+        rows.append(dict(scene=scene, caches="again", **run((scene,), Path(tmp), steps, arch)))
+    return rows
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    parser.add_argument("--steps", type=int, default=10, help="steps of each run (default 10)")
+    parser.add_argument("--arch", default=os.environ.get("TISSUE_ARCH", "cpu"))
+    args = parser.parse_args(argv)
+
+    from tissue import backend
+
+    backend.init(args.arch)
+    info = machine()
+    print_machine(info)
+    print(f"{'scene':<12} {'caches':<6} {'wall s':>7} {'mesh s':>7} {'compile s':>9} {'kernels':>7} "
+          f"{'simulate s':>10} {'other s':>7}")
+    rows = []
+    for scene in args.scenes:
+        for row in measure(scene, args.steps, args.arch):
+            rows.append(row)
+            print(f"{row['scene']:<12} {row['caches']:<6} {row['wall_s']:7.1f} {row['mesh_s']:7.2f} "
+                  f"{row['compile_s']:9.1f} {row['kernels']:7d} {row['simulate_s']:10.2f} {row['other_s']:7.1f}",
+                  flush=True)
+    write_results("startup", dict(machine=info, steps=args.steps, fillers=[" ".join(f) for f in FILLERS],
+                                  runs=rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""An on-disk cache of generated meshes: a procedural organ takes seconds to make, milliseconds to load.
+
+Files are `.npz` under `$TISSUE_CACHE/meshes/`, else `~/.cache/tissue/meshes/`, named by a hash of
+what the mesh depends on: the generator's name and parameters, `VERSION`, the source of the
+generating modules and the VTK version (marching cubes, smoothing and decimation are VTK's). A
+file that cannot be read is regenerated and replaced; a cache that cannot be written is skipped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from functools import lru_cache
+from importlib import metadata
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .tetmesh import TetMesh
+
+# Bump by hand when the meshes change for a reason the hashed sources do not show.
+VERSION = "1"
+SOURCES = ("organs.py", "tetrahedralize.py", "tetmesh.py")
+
+
+def directory() -> Path:
+    root = os.environ.get("TISSUE_CACHE") or Path.home() / ".cache" / "tissue"
+    return Path(root) / "meshes"
+
+
+@lru_cache(maxsize=None)
+def _generator_hash() -> str:
+    digest = hashlib.sha256(VERSION.encode())
+    for name in SOURCES:
+        digest.update((Path(__file__).parent / name).read_bytes())
+    try:
+        digest.update(metadata.version("vtk").encode())
+    except metadata.PackageNotFoundError:
+        pass
+    return digest.hexdigest()
+
+
+def path_for(kind: str, **params) -> Path:
+    """The cache file of the mesh `kind` made with these (JSON-able) parameters."""
+    key = json.dumps([_generator_hash(), kind, params], sort_keys=True)
+    return directory() / f"{kind}-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz"
+
+
+def cached_mesh(make: Callable[[], TetMesh], kind: str, **params) -> TetMesh:
+    """The mesh `make()` returns, from the cache when it holds one for (kind, params)."""
+    path = path_for(kind, **params)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return TetMesh(data["points"], data["tets"], source=str(data["source"]))
+    except Exception:  # noqa: BLE001 - missing, or damaged in any way: a cache miss
+        pass
+    mesh = make()
+    _write(path, points=mesh.points, tets=mesh.tets, source=np.array(mesh.source))
+    return mesh
+
+
+def _write(path: Path, **arrays) -> None:
+    """Write aside, then rename: a reader never sees half a file, even with runs in parallel."""
+    temporary = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.stem, suffix=".tmp", delete=False) as f:
+            temporary = Path(f.name)
+            np.savez(f, **arrays)
+        os.replace(temporary, path)
+    except OSError:  # read-only or full: run without the cache
+        if temporary is not None:
+            temporary.unlink(missing_ok=True)
