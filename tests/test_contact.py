@@ -797,6 +797,49 @@ def test_stage_in_play_gauss_seidel_matches_whole_problem(coarse_block, monkeypa
     assert pushes[0][-1] > 0
 
 
+def compiled_kernel_instances() -> int:
+    """Kernel instances Taichi has compiled in this process (one per template specialisation)."""
+    import gc
+
+    from taichi.lang.kernel_impl import Kernel
+
+    return sum(len(k.compiled_kernels) for k in gc.get_objects() if isinstance(k, Kernel))
+
+
+def test_contact_storage_grows_without_compiling(backend):
+    """A sphere (r 4 cm) pressed into the face-sampled top of a clamped block: the rows grow
+    several-fold as it goes deeper, and the stage's scratch with them (counted in its stats). Once
+    each kernel has run (the first steps in contact), growing compiles nothing: the kernels take
+    the scratch as ndarrays, of any size (a new field would compile every kernel taking it again).
+    Measured: 21 then 108 rows, 13 growths while pressing, no kernel compiled; with the scratch as
+    fields (growing likewise), 7 kernel instances compiled while pressing."""
+    from tissue.contact.obstacles import RigidObstacle, Sphere
+    from tissue.contact.pipeline import Contact, ContactStage
+
+    mesh = block(cells=(6, 6, 2))
+    solver = make_solver(mesh, gravity=(0, 0, 0), rayleigh_mass=5.0, rayleigh_stiffness=0.02,
+                         fixed=np.flatnonzero(mesh.points[:, 2] == 0))
+    radius, speed = 0.04, 0.05
+    probe = RigidObstacle(Sphere((0, 0, 0), radius), motion=lambda t: (0.0, 0.0, 0.05 + radius + 1e-3 - speed * t))
+    # One path through the kernels: W formed (its factors are kernels of their own).
+    stage = ContactStage([solver], [probe], Contact(distance=1e-3, sampling="faces", delassus="dense"))
+
+    def press(steps):
+        for _ in range(steps):
+            solver.step()
+            stage.step()
+        return stage.stats.counters["rows"]
+
+    first = press(2)
+    compiled, growths = compiled_kernel_instances(), stage.storage_growths
+    last = press(22)
+    print(f"rows {first} -> {last}, growths {growths} -> {stage.storage_growths}")
+    assert first > 0 and last > 4 * first
+    assert stage.storage_growths > growths
+    assert stage.stats.counters["contact_storage_growths"] == stage.storage_growths
+    assert compiled_kernel_instances() == compiled
+
+
 def test_contact_settings_and_stage_validation(damped_block, cantilever):
     from tissue.contact.constraints import Attachment
     from tissue.contact.obstacles import Plane, RigidObstacle

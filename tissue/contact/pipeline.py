@@ -183,6 +183,8 @@ class ContactStage:
         self._scaled = np.empty(0)
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
         self.compliance = [kind(b.solver) for b in self.bodies]
+        self._storages = [self.detector.storage]
+        self._storages += [c.storage for c in self.compliance if isinstance(c, WarpedCompliance)]
         self.time = 0.0
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
@@ -200,6 +202,11 @@ class ContactStage:
         poses = self.poses(self.time)
         return self.detector.detect([b.solver.x for b in self.bodies],
                                     self.settings.distance if distance is None else distance, poses, poses)
+
+    @property
+    def storage_growths(self) -> int:
+        """How many times the scratch of the stage's kernels has grown (tissue.contact.storage)."""
+        return sum(s.growths for s in self._storages)
 
     def _friction(self, contacts: Contacts) -> np.ndarray:
         """μ per contact: soft–soft the smaller of the two bodies' (the default unless both say);
@@ -265,7 +272,8 @@ class ContactStage:
             self.last = ContactResult(contacts, dt=h)
             for name in ("constraints", "compliance", "lcp", "correction"):   # one entry per step each
                 stats.times[name].append(0.0)
-            stats.count(contacts=0, rows=0, gs_iterations=0, gs_residual=0.0, penetration=0.0)
+            stats.count(contacts=0, rows=0, gs_iterations=0, gs_residual=0.0, penetration=0.0,
+                        contact_storage_growths=self.storage_growths)
             return self.last
 
         with stats.stage("constraints"):
@@ -310,7 +318,8 @@ class ContactStage:
         normal = self._gaps[0::3]                               # δ_n after the correction
         stats.count(contacts=nc, rows=rows.n_rows, gs_iterations=info.iterations if info else 0,
                     gs_residual=info.residual if info else 0.0,
-                    penetration=float(max(0.0, -normal.min())) if nc else 0.0)
+                    penetration=float(max(0.0, -normal.min())) if nc else 0.0,
+                    contact_storage_growths=self.storage_growths)
         return self.last
 
     def _factors_pay(self, rows: ConstraintRows, touched: list[int], jds: dict) -> bool:
