@@ -233,7 +233,7 @@ def contact_cell(cell: dict) -> dict:
     CG and the cell's compliance and Gauss-Seidel stopping rule: contact forces gathered on the
     nodes at every step, final positions, ms per step."""
     from bench import stability
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
     from tissue.fem import Material
 
     worker_backend(cell["arch"])
@@ -243,8 +243,8 @@ def contact_cell(cell: dict) -> dict:
     solver = _solver(mesh, Material(stability.TISSUE["young"], stability.TISSUE["poisson"], 1000.0), fixed,
                      CONTACT["dt"], max_iterations=500, tolerance=1e-10, preconditioner="jacobi")
     solver.set_state(x, v)
-    stage = ContactStage([solver], stability.obstacles(scene, mesh), ContactSettings(
-        friction=CONTACT["friction"], contact_distance=stability.CONTACT_DISTANCE, compliance=cell["compliance"],
+    stage = ContactStage([solver], stability.obstacles(scene, mesh), Contact(
+        friction=CONTACT["friction"], distance=stability.CONTACT_DISTANCE, compliance=cell["compliance"],
         tolerance=cell["tolerance"], max_iterations=cell["iterations"]), stats=solver.stats)
     forces = []
     for _ in range(CONTACT["steps"]):

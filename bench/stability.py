@@ -200,7 +200,7 @@ def contact_stage(cell: dict, mesh, solver):
     found = obstacles(cell, mesh)
     if not found:
         return None
-    return ContactStage([solver], found, Contact(friction=cell["friction"], distance=CONTACT_DISTANCE).settings())
+    return ContactStage([solver], found, Contact(friction=cell["friction"], distance=CONTACT_DISTANCE))
 
 
 def simulate(cell: dict) -> dict:

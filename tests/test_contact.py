@@ -36,10 +36,10 @@ def block(size=(0.1, 0.1, 0.05), cells=(4, 4, 2), z0=0.0):
 
 def on_plane(solver, **settings):
     from tissue.contact.obstacles import Plane, RigidObstacle
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
 
-    settings.setdefault("contact_distance", 2e-3)
-    return ContactStage([solver], [RigidObstacle(Plane())], ContactSettings(**settings))
+    settings.setdefault("distance", 2e-3)
+    return ContactStage([solver], [RigidObstacle(Plane())], Contact(**settings))
 
 
 def elastic_energy(solver, x):
@@ -571,7 +571,7 @@ def hertz_fit(cells, indentations, young=1e5, poisson=0.3, radius=0.05):
     "linear" rotations and the exact compliance the contact problem is the linear-elastic one.
     Returns (d, F, exponent, constant / Hertz's)."""
     from tissue.contact.obstacles import Plane, RigidObstacle
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
     from tissue.solver import CGSettings, ImplicitEuler
     from tissue.fem import CorotationalFEM, Material
 
@@ -584,8 +584,8 @@ def hertz_fit(cells, indentations, young=1e5, poisson=0.3, radius=0.05):
     F = []
     for d in indentations:
         # Frictionless, and only vertices the free motion pushes (almost) through get a row.
-        stage = ContactStage([solver], [plane], ContactSettings(contact_distance=0.05 * d, compliance="exact",
-                                                                tolerance=1e-14, max_iterations=5000))
+        stage = ContactStage([solver], [plane], Contact(friction=0.0, distance=0.05 * d, compliance="exact",
+                                                        tolerance=1e-14, max_iterations=5000))
         x = mesh.points.copy()
         x[top, 2] -= d
         solver.set_state(x, np.zeros_like(x))
@@ -656,7 +656,7 @@ def test_attachment_holds_node_and_stacked_blocks_carry_both_weights(damped_bloc
     both weights minus what the attachment carries (exact compliance: momentum balance exact)."""
     from tissue.contact.constraints import Attachment
     from tissue.contact.obstacles import Plane, RigidObstacle
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
 
     lower = reset(damped_block)
     upper_mesh = block((0.05, 0.05, 0.03), (2, 2, 2), z0=0.05)
@@ -664,7 +664,7 @@ def test_attachment_holds_node_and_stacked_blocks_carry_both_weights(damped_bloc
     held = int(np.argmax(upper_mesh.points[:, 0] + upper_mesh.points[:, 1] + upper_mesh.points[:, 2]))
     target = upper_mesh.points[held].copy()
     stage = ContactStage([lower, upper], [RigidObstacle(Plane())],
-                         ContactSettings(friction=0.3, compliance="exact", contact_distance=2e-3, tolerance=1e-11),
+                         Contact(friction=0.3, compliance="exact", distance=2e-3, tolerance=1e-11),
                          attachments=[Attachment(1, held, point=tuple(target))])
     for _ in range(150):
         lower.step()
@@ -690,13 +690,13 @@ def test_stage_factors_equal_the_assembled_warped_W(damped_block):
     from tissue.contact import FactoredDelassus
     from tissue.contact.constraints import JaggedDiagonal
     from tissue.contact.obstacles import Plane, RigidObstacle
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
 
     lower = reset(damped_block)
     upper = make_solver(block((0.05, 0.05, 0.03), (2, 2, 2), z0=0.05), dt=0.01, rayleigh_mass=1.0,
                         rayleigh_stiffness=0.01)
     stage = ContactStage([lower, upper], [RigidObstacle(Plane())],
-                         ContactSettings(friction=0.3, contact_distance=2e-3, tolerance=1e-10, delassus="factored"))
+                         Contact(friction=0.3, distance=2e-3, tolerance=1e-10, delassus="factored"))
     for _ in range(5):
         lower.step()
         upper.step()
@@ -741,14 +741,13 @@ def test_moving_probe_pushes_and_surface_sampling_stops_it(coarse_block, samplin
     midpoints and centroids sampled too ("faces") it pushes: measured depth 0.55 mm (the sphere
     bulges between samples 1.7 cm apart), 11.7 N at the end, growing with the push."""
     from tissue.contact.obstacles import RigidObstacle, Sphere
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
 
     solver = reset(coarse_block)
     radius, speed = 0.015, 0.05
     probe = RigidObstacle(Sphere((0, 0, 0), radius), motion=lambda t: (0.0, 0.0, 0.05 + radius + 1e-3 - speed * t),
                           friction=0.2)
-    stage = ContactStage([solver], [probe], ContactSettings(contact_distance=1e-3, tolerance=1e-10,
-                                                            sampling=sampling))
+    stage = ContactStage([solver], [probe], Contact(distance=1e-3, tolerance=1e-10, sampling=sampling))
     push = []
     for i in range(22):
         solver.step()
@@ -782,8 +781,8 @@ def test_stage_in_play_gauss_seidel_matches_whole_problem(coarse_block, monkeypa
         solver = reset(coarse_block)
         probe = RigidObstacle(Sphere((0, 0, 0), radius), motion=lambda t: (0.0, 0.0, 0.05 + radius + 1e-3 - speed * t),
                               friction=0.2)
-        stage = pipeline.ContactStage([solver], [probe], pipeline.ContactSettings(
-            contact_distance=3e-3, tolerance=1e-10, sampling="faces", max_iterations=1000))
+        stage = pipeline.ContactStage([solver], [probe], pipeline.Contact(
+            distance=3e-3, tolerance=1e-10, sampling="faces", max_iterations=1000))
         pushes[above] = []
         for _ in range(22):
             solver.step()
@@ -798,21 +797,64 @@ def test_stage_in_play_gauss_seidel_matches_whole_problem(coarse_block, monkeypa
     assert pushes[0][-1] > 0
 
 
+def compiled_kernel_instances() -> int:
+    """Kernel instances Taichi has compiled in this process (one per template specialisation)."""
+    import gc
+
+    from taichi.lang.kernel_impl import Kernel
+
+    return sum(len(k.compiled_kernels) for k in gc.get_objects() if isinstance(k, Kernel))
+
+
+def test_contact_storage_grows_without_compiling(backend):
+    """A sphere (r 4 cm) pressed into the face-sampled top of a clamped block: the rows grow
+    several-fold as it goes deeper, and the stage's scratch with them (counted in its stats). Once
+    each kernel has run (the first steps in contact), growing compiles nothing: the kernels take
+    the scratch as ndarrays, of any size (a new field would compile every kernel taking it again).
+    Measured: 21 then 108 rows, 13 growths while pressing, no kernel compiled; with the scratch as
+    fields (growing likewise), 7 kernel instances compiled while pressing."""
+    from tissue.contact.obstacles import RigidObstacle, Sphere
+    from tissue.contact.pipeline import Contact, ContactStage
+
+    mesh = block(cells=(6, 6, 2))
+    solver = make_solver(mesh, gravity=(0, 0, 0), rayleigh_mass=5.0, rayleigh_stiffness=0.02,
+                         fixed=np.flatnonzero(mesh.points[:, 2] == 0))
+    radius, speed = 0.04, 0.05
+    probe = RigidObstacle(Sphere((0, 0, 0), radius), motion=lambda t: (0.0, 0.0, 0.05 + radius + 1e-3 - speed * t))
+    # One path through the kernels: W formed (its factors are kernels of their own).
+    stage = ContactStage([solver], [probe], Contact(distance=1e-3, sampling="faces", delassus="dense"))
+
+    def press(steps):
+        for _ in range(steps):
+            solver.step()
+            stage.step()
+        return stage.stats.counters["rows"]
+
+    first = press(2)
+    compiled, growths = compiled_kernel_instances(), stage.storage_growths
+    last = press(22)
+    print(f"rows {first} -> {last}, growths {growths} -> {stage.storage_growths}")
+    assert first > 0 and last > 4 * first
+    assert stage.storage_growths > growths
+    assert stage.stats.counters["contact_storage_growths"] == stage.storage_growths
+    assert compiled_kernel_instances() == compiled
+
+
 def test_contact_settings_and_stage_validation(damped_block, cantilever):
     from tissue.contact.constraints import Attachment
     from tissue.contact.obstacles import Plane, RigidObstacle
-    from tissue.contact.pipeline import ContactSettings, ContactStage
+    from tissue.contact.pipeline import Contact, ContactStage
 
-    with pytest.raises(TissueError, match="compliance"):
-        ContactSettings(compliance="magic")
-    with pytest.raises(TissueError, match="contact_distance"):
-        ContactSettings(contact_distance=0)
-    with pytest.raises(TissueError, match="max_iterations"):
-        ContactSettings(max_iterations=0)
-    with pytest.raises(TissueError, match="delassus"):
-        ContactSettings(delassus="sparse")
+    # The stage validates its settings; the errors name the field.
+    for settings, message in [(Contact(compliance="magic"), "compliance: unknown value 'magic'"),
+                              (Contact(distance=0.0), "distance: must be > 0"),
+                              (Contact(max_iterations=0), "max_iterations: must be >= 1"),
+                              (Contact(delassus="sparse"), "delassus: unknown value"),
+                              (Contact(tolerance="small"), "tolerance: expected a number")]:
+        with pytest.raises(TissueError, match=message):
+            ContactStage([damped_block], [RigidObstacle(Plane())], settings)
     with pytest.raises(TissueError, match="attachments"):
-        ContactStage([damped_block], [RigidObstacle(Plane())], ContactSettings(delassus="factored"),
+        ContactStage([damped_block], [RigidObstacle(Plane())], Contact(delassus="factored"),
                      attachments=[Attachment(0, 0, point=(0.0, 0.0, 0.0))])
     with pytest.raises(TissueError, match="obstacles"):
         ContactStage([damped_block], [Plane()])

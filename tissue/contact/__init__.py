@@ -6,18 +6,18 @@ exact), the frictional contact solver, and the stage that ties them after the fr
     constraints.py         H (normal, two tangents per contact; attachments) and its JDS storage
     compliance.py          W = Σ h (H R) A₀⁻¹ (H R)ᵀ by warping, or h H A⁻¹ Hᵀ exactly; the correction
     frictional_contact.py  Coulomb friction by projected block Gauss-Seidel
-    pipeline.py            ContactStage: detection → H → W → LCP → correction, timed
-    layer.py               Contact / Obstacle scene options and the Simulation stage
+    pipeline.py            ContactStage and its settings (Contact): detection → H → W → LCP → correction, timed
+    layer.py               Obstacle scene options, the Contact group in a scene, the Simulation stage
 """
 
 from .constraints import Attachment
 from .detection import Contacts, Detector
 from .frictional_contact import (ContactInfo, FactoredDelassus, FrictionalContactSolver, natural_map_residual,
                                  solve_frictional_contact)
-from .layer import Contact, ContactLayer, Obstacle
+from .layer import ContactLayer, Obstacle
 from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh
-from .pipeline import ContactBody, ContactResult, ContactSettings, ContactStage
+from .pipeline import Contact, ContactBody, ContactResult, ContactStage
 
 __all__ = ["Attachment", "Box", "Capsule", "Contact", "ContactBody", "ContactInfo", "ContactLayer", "ContactResult",
-           "ContactSettings", "ContactStage", "Contacts", "Detector", "FactoredDelassus", "FrictionalContactSolver", "Obstacle", "Plane",
+           "ContactStage", "Contacts", "Detector", "FactoredDelassus", "FrictionalContactSolver", "Obstacle", "Plane",
            "RigidObstacle", "Sphere", "TriangleMesh", "natural_map_residual", "solve_frictional_contact"]

@@ -64,6 +64,7 @@ from ..errors import TissueError
 from ..fem.corotational import nodal_rotation
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
+from .storage import Storage
 
 SERIAL_BELOW = 10_000    # nodes: below, the CPU runs the compliance loops on one thread
 
@@ -101,7 +102,7 @@ ROTATE, ASSEMBLE, FACTOR = 0, 1, 2     # what _delassus computes besides the nod
 
 @ti.kernel
 def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), R: ti.template(),
-              C0: ti.template(), hr: ti.template(), U: ti.template(), ht: ti.template(),
+              C0: ti.template(), hr: ti.types.ndarray(), U: ti.types.ndarray(), ht: ti.types.ndarray(),
               jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(), out: ti.types.ndarray(),
               P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
               n_touched: ti.i32, h: float, inverse_mass: float, tol: float, mode: ti.template(),
@@ -196,7 +197,7 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
 
 
 @ti.kernel
-def _correct(R: ti.template(), C0: ti.template(), hr: ti.template(), r0: ti.template(), pushed: ti.template(),
+def _correct(R: ti.template(), C0: ti.template(), hr: ti.types.ndarray(), r0: ti.template(), pushed: ti.template(),
              jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.template(),
              v: ti.template(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float,
              inverse_mass: float, serial: ti.template()):
@@ -276,8 +277,7 @@ class WarpedCompliance:
             self.pushed = ti.field(ti.i32, n + 1)                # touched nodes with r₀ ≠ 0, + their count
         self.C0.from_numpy(self.C0_host.astype(self._np))
         self._tol = fem.rotation_tolerance
-        self.hr = self.U = self.ht = None
-        self._Qt = np.empty(0, self._np)                      # Q among the touched dofs (assembling W)
+        self.storage = Storage()                              # this step's scratch: see prepare
         self._none, self._no_pos = np.zeros((1, 3, 3), self._np), np.zeros(1, np.int32)
         self.jds, self._ready = None, False
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
@@ -297,22 +297,11 @@ class WarpedCompliance:
         """This step's rows of H (the work is done by `add_to` or `factor`, or by `correct`
         without them)."""
         self.jds, self._ready = jds, False
-        d = 3 * len(jds.touched)
-        small = [f is None or f.shape[0] < n for f, n in ((self.hr, jds.nnz), (self.U, jds.n_active * d),
-                                                          (self.ht, jds.n_active))]
-        if len(self._Qt) < d * d:
-            self._Qt = np.empty(max(1 << 16, 4 * d * d), self._np)
-        if not any(small):
-            return
-        # Scratch fields grow (a new field recompiles the kernels: rare, by doubling). Entering
-        # fields_of costs ~0.4 ms (it materialises pending fields), so only when one must grow.
-        with backend.fields_of(self):
-            if small[0]:
-                self.hr = ti.Matrix.field(3, 3, self.real, max(1024, 2 * jds.nnz))
-            if small[1]:
-                self.U = ti.Vector.field(3, self.real, max(1 << 16, 2 * jds.n_active * d))
-            if small[2]:
-                self.ht = ti.Matrix.field(3, 3, self.real, max(256, 2 * jds.n_active))   # (H T) per row
+        d, real, storage = 3 * len(jds.touched), self.real, self.storage
+        self.hr = storage.get("hr", jds.nnz, ti.types.matrix(3, 3, real))          # (H R) per block
+        self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
+        self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
+        self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
 
     @property
     def free(self) -> bool:

@@ -37,6 +37,7 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from .obstacles import BOX, CAPSULE, PLANE, SPHERE
+from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
 SAMPLINGS = ("vertices", "edges", "faces")
@@ -242,7 +243,7 @@ def _detect(xa: ti.template(), nodes: ti.template(), weights: ti.template(), prm
             prm_offsets: ti.template(), prm_bounds: ti.template(), bounds: ti.template(), poses: ti.types.ndarray(),
             xb: ti.template(), faces: ti.template(), surface: ti.template(), vf_offsets: ti.template(),
             vf: ti.template(), normals: ti.template(),
-            start: ti.template(), cursor: ti.template(), ids: ti.template(), grid_i: ti.template(),
+            start: ti.template(), cursor: ti.template(), ids: ti.types.ndarray(), grid_i: ti.template(),
             grid_f: ti.template(), cell0: float, alarm: float, slot: ti.i32, out: ti.types.ndarray(),
             va: ti.template(), h: float, state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(),
             copy_state: ti.template(), serial: ti.template()):
@@ -434,7 +435,6 @@ class _Surface:
             # The grid of this body's triangles (built on the device at each detection).
             self.start = ti.field(ti.i32, GRID_MAX_CELLS + 1)
             self.cursor = ti.field(ti.i32, GRID_MAX_CELLS)
-            self.ids = ti.field(ti.i32, max(1024, 27 * len(faces)))
             self.grid_i, self.grid_f = ti.field(ti.i32, 8), ti.field(real, 4)
         _fill(fills)
         self.cell = None                          # base cell size: set at the first detection
@@ -479,6 +479,7 @@ class Detector:
         self._fields = {}
         self._bodies = None
         self.state, self._no_state = None, np.zeros((1, 6))
+        self.storage = Storage()                  # per body, the ids of its triangle grid's cells
         # Small problems run each loop on one thread on the CPU: dispatching a few hundred
         # iterations to the thread pool costs more than it saves (on 2 cores, measured 2x).
         self.serial = be.arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
@@ -549,17 +550,17 @@ class Detector:
             if other.cell is None:                    # the median triangle extent, at the first call
                 tri = fields_[b].to_numpy().astype(np.float64)[other.faces_np]
                 other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
+            ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
             while True:
                 _detect(x, body.nodes, body.weights, self._prm, self._prm_offsets, self._prm_bounds, self._bounds,
                         poses, fields_[b], other.faces, other.surface, other.vf_offsets, other.vf, other.normals,
-                        other.start, other.cursor, other.ids, other.grid_i, other.grid_f, other.cell + 2 * alarm,
+                        other.start, other.cursor, ids, other.grid_i, other.grid_f, other.cell + 2 * alarm,
                         alarm, slot, out, x if v is None else v, dt, state, rigid, soft, v is not None and k == 0,
                         self.serial)
                 needed = int(out[-1, slot, 0]) if soft else 0
-                if needed <= other.ids.shape[0]:
+                if needed <= ids.shape[0]:
                     break
-                with backend.fields_of(other):
-                    other.ids = ti.field(ti.i32, 2 * needed)  # grow and redo (rare)
+                ids = self.storage.get(b, needed, ti.i32)      # grow and redo (rare)
         return out
 
     def _mesh(self, a, x, o, obstacle, pose, out) -> None:

@@ -1,5 +1,6 @@
-"""The contact layer as a scene declares it: the `Contact` and `Obstacle` option groups, and the
-stage the Simulation runs right after the free motion (registered on import).
+"""The contact layer as a scene declares it: the `Contact` (the stage's settings, from
+tissue.contact.pipeline) and `Obstacle` option groups, and the stage the Simulation runs right
+after the free motion (registered on import).
 
     @dataclass
     class Press(Scene):
@@ -25,40 +26,7 @@ from ..errors import TissueError
 from ..options import Options, require
 from ..scene import Drawable, add_stage, rotation_matrix
 from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh, plane_axes, shape_surface
-from .pipeline import ContactBody, ContactSettings, ContactStage
-
-
-@dataclass
-class Contact(Options):
-    """Contact and Coulomb friction between every soft body and obstacle (tissue.contact.pipeline).
-
-    distance: alarm distance (m); compliance: 'warped' (precomputed A₀⁻¹ and nodal rotations, the
-    paper's) or 'exact' (a sparse LU per step); tolerance (m) and max_iterations: the Gauss-Seidel
-    stopping rule; sampling: the contact points of each surface ('vertices'; 'edges' and 'faces'
-    add edge midpoints and centroids, for obstacles thinner than the mesh spacing); delassus: how
-    the warped W is kept, as its factors (per body H R and A₀⁻¹ on the touched nodes), formed
-    ('dense'), or 'auto' (factors when smaller than W).
-    """
-
-    friction: float = 0.3
-    distance: float = 3e-3
-    compliance: Literal["warped", "exact"] = "warped"
-    tolerance: float = 1e-6
-    max_iterations: int = 100
-    soft_soft: bool = True
-    sampling: Literal["vertices", "edges", "faces"] = "vertices"
-    delassus: Literal["auto", "factored", "dense"] = "auto"
-
-    def check(self):
-        require(self.friction >= 0, "friction", f"must be >= 0, got {self.friction}")
-        require(self.distance > 0, "distance", f"must be > 0 m, got {self.distance}")
-        require(self.tolerance > 0, "tolerance", f"must be > 0 m, got {self.tolerance}")
-        require(self.max_iterations >= 1, "max_iterations", f"must be >= 1, got {self.max_iterations}")
-
-    def settings(self) -> ContactSettings:
-        return ContactSettings(friction=self.friction, contact_distance=self.distance, compliance=self.compliance,
-                               tolerance=self.tolerance, max_iterations=self.max_iterations,
-                               soft_soft=self.soft_soft, sampling=self.sampling, delassus=self.delassus)
+from .pipeline import Contact, ContactBody, ContactStage
 
 
 @dataclass
@@ -141,7 +109,7 @@ class ContactLayer:
         self.specs = obstacles
         self.obstacles = {name: spec.build(name) for name, spec in obstacles.items()}
         bodies = [ContactBody(b.solver, b.faces) for b in sim.bodies.values()]
-        self.stage = ContactStage(bodies, list(self.obstacles.values()), settings.settings())
+        self.stage = ContactStage(bodies, list(self.obstacles.values()), settings)
 
     def step(self, sim) -> None:
         self.stage.step(time=sim.time + sim.dt)

@@ -26,6 +26,7 @@ solver (≈ the worst violation of non-penetration / Coulomb's law, as a displac
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 import scipy.linalg
@@ -34,48 +35,51 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from ..mesh import boundary_faces
+from ..options import Options, require, validate
 from ..stats import Stats
 from .compliance import ExactCompliance, WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows
-from .detection import SAMPLINGS, Contacts, Detector
+from .detection import Contacts, Detector
 from .frictional_contact import ContactInfo, FactoredDelassus, FrictionalContactSolver
 from .obstacles import RigidObstacle
 
-COMPLIANCES = ("warped", "exact")
-DELASSUS = ("auto", "factored", "dense")
 # Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`) costs about a
 # millisecond of numpy and saves ~20 µs a sweep: the stage uses it after a step that took more
 # sweeps than this (the problems change little from one step to the next).
 REDUCE_ABOVE = 24
 
 
-@dataclass(frozen=True)
-class ContactSettings:
-    friction: float = 0.0             # Coulomb μ where neither the obstacle nor the body says
-    contact_distance: float = 1e-3    # alarm distance (m): vertices closer than this are constrained
-    compliance: str = "warped"        # "warped" (paper §3.2) or "exact" (sparse LU each step)
-    tolerance: float = 1e-9           # on the contact solver's residual, in metres (see above)
-    max_iterations: int = 200         # Gauss-Seidel sweeps per step
-    soft_soft: bool = True            # detect contacts between soft bodies
-    sampling: str = "vertices"        # contact points: "vertices", "edges" (+ midpoints), "faces" (+ centroids)
-    method: str = "gauss_seidel"      # or "jacobi" (parallel, slower to converge)
-    delassus: str = "auto"            # warped W: "factored", "dense" (formed), "auto" (see _factors_pay)
+@dataclass
+class Contact(Options):
+    """Contact and Coulomb friction between every soft body and obstacle: the stage's settings, and
+    the option group a scene declares (tissue.contact.layer; `--set contact.distance=...`).
 
-    def __post_init__(self):
-        if self.sampling not in SAMPLINGS:
-            raise TissueError(f"sampling: unknown {self.sampling!r}; expected one of {SAMPLINGS}")
-        if self.compliance not in COMPLIANCES:
-            raise TissueError(f"compliance: unknown {self.compliance!r}; expected one of {COMPLIANCES}")
-        if self.delassus not in DELASSUS:
-            raise TissueError(f"delassus: unknown {self.delassus!r}; expected one of {DELASSUS}")
-        for name in ("friction", "contact_distance", "tolerance"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
-                raise TissueError(f"{name}: must be a finite number ≥ 0, got {value!r}")
-        if self.contact_distance <= 0 or self.tolerance <= 0:
-            raise TissueError("contact_distance and tolerance must be > 0")
-        if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
-            raise TissueError(f"max_iterations: must be an integer ≥ 1, got {self.max_iterations!r}")
+    friction: Coulomb μ where neither the obstacle nor the body says; distance: alarm distance (m),
+    surface points closer than this are constrained; compliance: 'warped' (precomputed A₀⁻¹ and
+    nodal rotations, the paper's) or 'exact' (a sparse LU per step); tolerance (m, on the solver's
+    residual, see above) and max_iterations (sweeps per step): the stopping rule; method:
+    'gauss_seidel' or 'jacobi' (parallel, slower to converge); soft_soft: detect contacts between
+    soft bodies; sampling: the contact points of each surface ('vertices'; 'edges' and 'faces' add
+    edge midpoints and centroids, for obstacles thinner than the mesh spacing); delassus: how the
+    warped W is kept, as its factors (per body H R and A₀⁻¹ on the touched nodes), formed
+    ('dense'), or 'auto' (factors when smaller than W, see _factors_pay).
+    """
+
+    friction: float = 0.3
+    distance: float = 3e-3
+    compliance: Literal["warped", "exact"] = "warped"
+    tolerance: float = 1e-6
+    max_iterations: int = 100
+    method: Literal["gauss_seidel", "jacobi"] = "gauss_seidel"
+    soft_soft: bool = True
+    sampling: Literal["vertices", "edges", "faces"] = "vertices"
+    delassus: Literal["auto", "factored", "dense"] = "auto"
+
+    def check(self):
+        require(self.friction >= 0, "friction", f"must be >= 0, got {self.friction}")
+        require(self.distance > 0, "distance", f"must be > 0 m, got {self.distance}")
+        require(self.tolerance > 0, "tolerance", f"must be > 0 m, got {self.tolerance}")
+        require(self.max_iterations >= 1, "max_iterations", f"must be >= 1, got {self.max_iterations}")
 
 
 @dataclass
@@ -136,8 +140,9 @@ class ContactStage:
     Call `step()` after every body has done its free motion (`solver.step()`).
     """
 
-    def __init__(self, bodies, obstacles=(), settings: ContactSettings = ContactSettings(),
-                 attachments=(), stats: Stats | None = None):
+    def __init__(self, bodies, obstacles=(), settings: Contact | None = None, attachments=(),
+                 stats: Stats | None = None):
+        settings = validate(Contact() if settings is None else settings)
         self.bodies = [b if isinstance(b, ContactBody) else ContactBody(b) for b in bodies]
         if not self.bodies:
             raise TissueError("contact: needs at least one soft body")
@@ -178,6 +183,8 @@ class ContactStage:
         self._scaled = np.empty(0)
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
         self.compliance = [kind(b.solver) for b in self.bodies]
+        self._storages = [self.detector.storage]
+        self._storages += [c.storage for c in self.compliance if isinstance(c, WarpedCompliance)]
         self.time = 0.0
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
@@ -194,7 +201,12 @@ class ContactStage:
         """Contacts at the bodies' current positions (e.g. to measure gaps after a step)."""
         poses = self.poses(self.time)
         return self.detector.detect([b.solver.x for b in self.bodies],
-                                    self.settings.contact_distance if distance is None else distance, poses, poses)
+                                    self.settings.distance if distance is None else distance, poses, poses)
+
+    @property
+    def storage_growths(self) -> int:
+        """How many times the scratch of the stage's kernels has grown (tissue.contact.storage)."""
+        return sum(s.growths for s in self._storages)
 
     def _friction(self, contacts: Contacts) -> np.ndarray:
         """μ per contact: soft–soft the smaller of the two bodies' (the default unless both say);
@@ -252,7 +264,7 @@ class ContactStage:
         self.time = self.time + h if time is None else float(time)
         with stats.stage("detection"):
             contacts = self._drop_fixed(self.detector.detect(
-                [b.solver.x for b in self.bodies], s.contact_distance, self._poses(self.time),
+                [b.solver.x for b in self.bodies], s.distance, self._poses(self.time),
                 self._poses(self.time - h), velocities=[b.solver.v for b in self.bodies], dt=h))
         if not len(contacts) and not self.attachments:
             self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
@@ -260,7 +272,8 @@ class ContactStage:
             self.last = ContactResult(contacts, dt=h)
             for name in ("constraints", "compliance", "lcp", "correction"):   # one entry per step each
                 stats.times[name].append(0.0)
-            stats.count(contacts=0, rows=0, gs_iterations=0, gs_residual=0.0, penetration=0.0)
+            stats.count(contacts=0, rows=0, gs_iterations=0, gs_residual=0.0, penetration=0.0,
+                        contact_storage_growths=self.storage_growths)
             return self.last
 
         with stats.stage("constraints"):
@@ -305,7 +318,8 @@ class ContactStage:
         normal = self._gaps[0::3]                               # δ_n after the correction
         stats.count(contacts=nc, rows=rows.n_rows, gs_iterations=info.iterations if info else 0,
                     gs_residual=info.residual if info else 0.0,
-                    penetration=float(max(0.0, -normal.min())) if nc else 0.0)
+                    penetration=float(max(0.0, -normal.min())) if nc else 0.0,
+                    contact_storage_growths=self.storage_growths)
         return self.last
 
     def _factors_pay(self, rows: ConstraintRows, touched: list[int], jds: dict) -> bool:
