@@ -98,7 +98,7 @@ def cg_bytes_per_iteration(solver) -> int:
     """Bytes a CG iteration must move at least (assembled operator): the blocks, their column
     indices and row offsets, and the nodal vectors read and written (p, q, dv, r, z, mass, fixed)."""
     n = solver.fem.n_nodes
-    real = 8 if solver.fem.R.dtype.to_string() == "f64" else 4
+    real = 8 if backend.current().precision == "f64" else 4
     return solver.matrix.nbytes + n * (3 * real * 9 + real + 4)
 
 

@@ -183,9 +183,7 @@ def solver_for(cell: dict, mesh, material):
         entry = _solvers[key] = (backend.current(), solver)
     solver = entry[1]
     fem = solver.fem
-    lam, mu = material.lame
-    fem.material = material
-    fem.lame.from_numpy(np.tile([lam, mu], (fem.n_elements, 1)))
+    fem.model.set_material(material)     # a runtime change: nothing recompiles
     solver.stats = Stats()
     solver._warned_inversion = False     # the solver warns once per life: here, once per cell
     return solver

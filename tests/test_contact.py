@@ -449,7 +449,7 @@ def test_signorini_block_resting_on_plane(damped_block, compliance, weight_error
     still turned the translation)."""
     solver = reset(damped_block)
     stage = on_plane(solver, friction=0.5, compliance=compliance, tolerance=1e-10)
-    weight = solver.fem.mass.to_numpy().sum() * G
+    weight = solver.fem.model.mass.sum() * G
     tol = 1e-9
     for step in range(120):
         solver.step()
@@ -484,7 +484,7 @@ def _run_incline(solver, mu, steps, energy=None):
     reset(solver)
     stage = on_plane(solver, friction=mu, tolerance=1e-12, max_iterations=1000)
     mesh = solver.fem.mesh
-    m = solver.fem.mass.to_numpy()
+    m = solver.fem.model.mass
     bottom = np.flatnonzero(mesh.points[:, 2] == 0)
     t, com, base, E = [], [], [], []
     for i in range(steps):
@@ -539,7 +539,7 @@ def test_warped_compliance_slides_a_free_block_like_the_exact_one(backend, rotat
         solver = make_solver(block(), young=1e5, dt=0.01, rotation=rotation, rayleigh_stiffness=0.01,
                              gravity=(G * np.sin(theta), 0.0, -G * np.cos(theta)))
         stage = on_plane(solver, friction=0.5, compliance=compliance, tolerance=1e-12, max_iterations=1000)
-        m = solver.fem.mass.to_numpy()
+        m = solver.fem.model.mass
         for _ in range(40):
             solver.step()
             stage.step()
@@ -630,7 +630,7 @@ def test_energy_does_not_grow_in_resting_contact(incline):
     m g h while the block settles (the only damping is α_K = 0.01) and its largest rise is 5e-9 of
     m g h (1.2e-9 J: round-off and the 1e-12 solver tolerances)."""
     gravity = np.array(incline.gravity)
-    m = np.repeat(incline.fem.mass.to_numpy(), 3)
+    m = np.repeat(incline.fem.model.mass, 3)
     scale = m.sum() / 3 * G * 0.05
 
     def energy(solver):
@@ -670,7 +670,7 @@ def test_attachment_holds_node_and_stacked_blocks_carry_both_weights(damped_bloc
         lower.step()
         upper.step()
         r = stage.step()
-    weight = (lower.fem.mass.to_numpy().sum() + upper.fem.mass.to_numpy().sum()) * G
+    weight = (lower.fem.model.mass.sum() + upper.fem.model.mass.sum()) * G
     forces = r.contact_forces
     plane_force = forces[~r.contacts.soft, 2].sum()
     attachment_force = r.impulses[3 * r.rows.n_contacts:][2] / lower.dt
@@ -878,7 +878,7 @@ def test_incline_scene_slides_at_the_coulomb_rate(backend):
     sim = Simulation(Incline(duration=0.6))
     assert [s.name for s in sim.stages] == ["free_motion", "contact"]
     body = sim.bodies["block"]
-    m = body.fem.mass.to_numpy()
+    m = body.fem.model.mass
     down = np.array([-np.cos(np.radians(ANGLE)), 0.0, -np.sin(np.radians(ANGLE))])
     t, s = [], []
     for _ in range(sim.scene.steps):

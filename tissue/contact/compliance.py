@@ -70,10 +70,10 @@ SERIAL_BELOW = 10_000    # nodes: below, the CPU runs the compliance loops on on
 
 
 @ti.kernel
-def _nodal_rotations(Re: ti.template(), offsets: ti.template(), incidence: ti.template(),
+def _nodal_rotations(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
                      out: ti.template(), tol: float):
     for v in out:
-        out[v] = nodal_rotation(Re, offsets, incidence, v, tol)
+        out[v] = nodal_rotation(Re, valence, incidence, v, tol)
 
 
 @ti.func
@@ -101,7 +101,7 @@ ROTATE, ASSEMBLE, FACTOR = 0, 1, 2     # what _delassus computes besides the nod
 
 
 @ti.kernel
-def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(), R: ti.template(),
+def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(), R: ti.template(),
               C0: ti.template(), hr: ti.types.ndarray(), U: ti.types.ndarray(), ht: ti.types.ndarray(),
               jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(), out: ti.types.ndarray(),
               P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
@@ -117,7 +117,7 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
     ti.loop_config(serialize=serial)
     for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
-        R[v] = nodal_rotation(Re, offsets, incidence, v, tol)
+        R[v] = nodal_rotation(Re, valence, incidence, v, tol)
     ti.loop_config(serialize=serial)
     for e in range(nnz):                            # kernel 1
         V = ti.Matrix.zero(float, 3, 3)
@@ -198,8 +198,8 @@ def _delassus(Re: ti.template(), offsets: ti.template(), incidence: ti.template(
 
 @ti.kernel
 def _correct(R: ti.template(), C0: ti.template(), hr: ti.types.ndarray(), r0: ti.template(), pushed: ti.template(),
-             jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.template(),
-             v: ti.template(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float,
+             jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.types.ndarray(),
+             v: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float,
              inverse_mass: float, serial: ti.template()):
     """r₀ = (H R)ᵀ λ on the touched dofs and the total impulse p = (H T)ᵀ λ (serial: a fixed
     summation order; p in r₀'s last slot), then per node dx = h (R Q r₀ + p / (c m)) (a gather over
@@ -267,7 +267,7 @@ class WarpedCompliance:
         # would bend the translation: the block on a slope slid 1.4 % too slowly with "polar".
         n = fem.n_nodes
         free = len(solver.fixed_nodes) == 0
-        self.inverse_mass = 1.0 / ((1.0 + solver.dt * solver.rayleigh_mass) * fem.mass.to_numpy().sum()) \
+        self.inverse_mass = 1.0 / ((1.0 + solver.dt * solver.rayleigh_mass) * fem.model.mass.sum()) \
             if free else 0.0
         self.C0_host = 0.5 * (C0 + C0.T) - self.inverse_mass * np.kron(np.ones((n, n)), np.eye(3))   # Q
         with backend.fields_of(self):
@@ -288,7 +288,7 @@ class WarpedCompliance:
         """Nodal rotations from the element rotations of the last free motion (`add_to` also
         computes them, in its own launch)."""
         fem = self.solver.fem
-        _nodal_rotations(fem.R, fem.incidence_offsets, fem.incidence, self.R, self._tol)
+        _nodal_rotations(fem.R, *fem.model.gather_index(), self.R, self._tol)
 
     def nodal_rotations(self) -> np.ndarray:
         return self.R.to_numpy().astype(np.float64)
@@ -316,7 +316,7 @@ class WarpedCompliance:
     def _run(self, mode, out, Qt=None, P=None, pos=None) -> None:
         fem, jds = self.solver.fem, self.jds
         none = self._none
-        _delassus(fem.R, fem.incidence_offsets, fem.incidence, self.R, self.C0, self.hr, self.U, self.ht,
+        _delassus(fem.R, *fem.model.gather_index(), self.R, self.C0, self.hr, self.U, self.ht,
                   jds.packed, jds.value, self._Qt if Qt is None else Qt, out, none if P is None else P,
                   self._no_pos if pos is None else pos, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz,
                   len(jds.touched), self.solver.dt, self.inverse_mass, self._tol, mode, self.serial)
@@ -365,7 +365,7 @@ class ExactCompliance:
         matrix = getattr(s, "matrix", None)
         if matrix is not None and self.assembly == "solver":
             K = matrix.to_scipy()
-            mass = np.repeat(fem.mass.to_numpy().astype(np.float64), 3)
+            mass = np.repeat(fem.model.mass, 3)
             A = sp.diags(s.mass_factor * mass) + s.stiffness_factor * K
         else:
             v = s.velocities()

@@ -239,13 +239,13 @@ def _cell_range(lo, hi, origin, cell, dims):
 
 
 @ti.kernel
-def _detect(xa: ti.template(), nodes: ti.template(), weights: ti.template(), prm: ti.template(),
+def _detect(xa: ti.types.ndarray(), nodes: ti.template(), weights: ti.template(), prm: ti.template(),
             prm_offsets: ti.template(), prm_bounds: ti.template(), bounds: ti.template(), poses: ti.types.ndarray(),
-            xb: ti.template(), faces: ti.template(), surface: ti.template(), vf_offsets: ti.template(),
+            xb: ti.types.ndarray(), faces: ti.template(), surface: ti.template(), vf_offsets: ti.template(),
             vf: ti.template(), normals: ti.template(),
             start: ti.template(), cursor: ti.template(), ids: ti.types.ndarray(), grid_i: ti.template(),
             grid_f: ti.template(), cell0: float, alarm: float, slot: ti.i32, out: ti.types.ndarray(),
-            va: ti.template(), h: float, state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(),
+            va: ti.types.ndarray(), h: float, state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(),
             copy_state: ti.template(), serial: ti.template()):
     """The contact candidates of body A's samples, in one launch. out[s, slot] = [gap, normal (3),
     closest point (3), weights on B's triangle (3), triangle id (-1 rigid)]; gap 1e300: none.
@@ -383,9 +383,9 @@ def _detect(xa: ti.template(), nodes: ti.template(), weights: ti.template(), prm
 
 
 @ti.kernel
-def read_state(x: ti.template(), v: ti.template(), h: float, out: ti.types.ndarray()):
+def read_state(x: ti.types.ndarray(), v: ti.types.ndarray(), h: float, out: ti.types.ndarray()):
     """out[k] = (x_k, x_k - h v_k): the free positions and those at the start of the step."""
-    for k in x:
+    for k in range(x.shape[0]):
         p, u = x[k], v[k]
         for c in ti.static(range(3)):
             out[k, c] = p[c]
@@ -485,12 +485,11 @@ class Detector:
         self.serial = be.arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
 
     def _field(self, body, positions):
-        """A Taichi field for numpy positions (one per body, reused)."""
+        """A Taichi ndarray for numpy positions (one per body, reused); a solver's `x` as it is."""
         if isinstance(positions, np.ndarray):
             f = self._fields.get(body)
             if f is None or f.shape[0] != len(positions):
-                with backend.fields_of(self):
-                    f = self._fields[body] = ti.Vector.field(3, self.real, len(positions))
+                f = self._fields[body] = ti.ndarray(ti.types.vector(3, self.real), len(positions))
             f.from_numpy(positions.astype(self._np))
             return f
         return positions

@@ -73,10 +73,14 @@ class _Blocks:
         real = backend.current().real
         return ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.matrix(3, 4, real)
 
-    def _upload_gradients(self) -> None:
-        gradients = np.zeros((self.model.element_capacity, 3, 4), dtype=real_numpy())
-        gradients[:self.model.n_elements] = shape_gradients(self.model.Dm_inv)
-        self.arrays["gradients"].from_numpy(gradients)
+    def _upload_gradients(self, elements=None) -> None:
+        """The rest-shape gradients of these elements (default: all) into the device array."""
+        if elements is None or getattr(self, "_gradients", None) is None \
+                or len(self._gradients) != self.model.element_capacity:
+            self._gradients = np.zeros((self.model.element_capacity, 3, 4), dtype=real_numpy())
+            elements = np.arange(self.model.n_elements)
+        self._gradients[elements] = shape_gradients(self.model.Dm_inv[elements])
+        self.arrays["gradients"].from_numpy(self._gradients)
 
     def _pack(self, **arrays) -> None:
         one = dict(rotated=(ti.i32, 1), slots=(ti.i32, 1), index=(ti.i32, 1), offsets=(ti.i32, 1),
@@ -242,13 +246,8 @@ class SymmetricBlocks(_Blocks):
                     self._slots[row, k] = 2 * j + (t[b] < t[a])
             if new:
                 self._upper = np.concatenate([self._upper, np.array(new, dtype=np.int32)])
-            gradients = self.arrays["gradients"].to_numpy()
-            gradients[edit.added] = shape_gradients(self.model.Dm_inv[edit.added])
-            if len(edit.moved_to):
-                gradients[edit.moved_to] = gradients[edit.moved_from]
-            self.arrays["gradients"].from_numpy(gradients)
-        elif len(edit.moved_to):
-            self._upload_gradients()
+        if len(edit.added) or len(edit.moved_to):
+            self._upload_gradients(np.concatenate([edit.added, edit.moved_to]).astype(np.int64))
         self._upload_pattern()
 
     @property

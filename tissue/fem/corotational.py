@@ -339,7 +339,6 @@ class CorotationalFEM:
         if accumulation not in ACCUMULATIONS:
             raise TissueError(f"accumulation: unknown method {accumulation!r}; expected one of {ACCUMULATIONS}")
         self.model = mesh if isinstance(mesh, BodyModel) else BodyModel(mesh, material)
-        self.material = self.model.material
         self.rotation, self.accumulation = rotation, accumulation
         self.rotation_tolerance = 1e-13 if backend.current().precision == "f64" else 1e-6
         self._version = None
@@ -353,12 +352,8 @@ class CorotationalFEM:
         real = backend.current().real
         vec3, mat3 = ti.types.vector(3, real), ti.types.matrix(3, 3, real)
         n, m = model.node_capacity, model.element_capacity
-        old_R = getattr(self, "R", None)
-        self.R = ti.ndarray(mat3, m)
-        R = np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1))
-        if old_R is not None:
-            R[:old_R.shape[0]] = old_R.to_numpy()
-        self.R.from_numpy(R)
+        self.R = ti.ndarray(mat3, m)      # every step recomputes the rotations before using them
+        self.R.from_numpy(np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1)))
         self.work = FEM_WORK(R=self.R, inverted=ti.ndarray(ti.i32, 1),
                              buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
                              accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
@@ -369,6 +364,10 @@ class CorotationalFEM:
     @property
     def mesh(self) -> TetMesh:
         return self.model.mesh()
+
+    @property
+    def material(self) -> Material:
+        return self.model.material
 
     @property
     def n_nodes(self) -> int:

@@ -207,6 +207,10 @@ class BodyModel:
         """The elements in use as a TetMesh (all nodes kept, detached ones too)."""
         return TetMesh(self.points.copy(), self.tets.astype(np.int64), source=self.source)
 
+    def gather_index(self):
+        """(valence, incidence) ndarrays, for kernels outside the solver's (the nodal rotations)."""
+        return self.arrays["valence"], self.arrays["incidence"]
+
     def incidence_csr(self) -> tuple[np.ndarray, np.ndarray]:
         """The gather index as CSR: offsets (nodes + 1) and corner codes 4 e + a."""
         valence = self._valence[:self.n_nodes]
@@ -222,6 +226,19 @@ class BodyModel:
 
             self._faces = boundary_faces(self.tets)
         return self._faces
+
+    # ---- material -----------------------------------------------------------------------------
+
+    def set_material(self, material: Material) -> None:
+        """Give every element this material (λ, μ and the lumped mass follow): a runtime change,
+        read by the next step."""
+        m = self.n_elements
+        self.material = material
+        self._elastic[:m, 1:] = material.lame
+        self._density[:m] = material.density
+        self._mass[:] = 0.0
+        np.add.at(self._mass, self.tets.reshape(-1), np.repeat(material.density * self.volumes / 4.0, 4))
+        self._upload("elastic", "mass")
 
     # ---- held nodes ---------------------------------------------------------------------------
 

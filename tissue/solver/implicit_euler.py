@@ -173,6 +173,7 @@ class ImplicitEuler:
         self._warned_inversion = False
         self._version = None
         self._pack_key = None
+        self._external = np.zeros((0, 3))
         self.multigrid = None
         self._resize()
         self.parameters = parameters
@@ -227,16 +228,19 @@ class ImplicitEuler:
     # ---- storage ------------------------------------------------------------------------------
 
     def _resize(self) -> None:
-        """Match the state to the model's capacity (keeping x and v); compiles nothing."""
+        """Match the state to the model: its nodal arrays hold exactly the model's nodes (so the
+        contact layer and the output read them as they are), re-allocated with x and v kept when
+        nodes are added; no compilation either way."""
         model = self.model
-        if self._version == model.version:
+        key = (model.version, model.n_nodes)
+        if self._version == key:
             return
         self.fem.resize()
         if self.matrix is not None:
             self.matrix.resize()
         real = backend.current().real
         vec3, mat3 = ti.types.vector(3, real), ti.types.matrix(3, 3, real)
-        n = model.node_capacity
+        n = model.n_nodes
         old = getattr(self, "arrays", None)
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
@@ -244,20 +248,23 @@ class ImplicitEuler:
         arrays["partial"] = ti.ndarray(real, (2, (n + BLOCK - 1) // BLOCK))
         arrays["parameters"] = ti.ndarray(real, 9)
         if old is None:
-            rest = np.zeros((n, 3), dtype=real_numpy())
-            rest[:model.n_nodes] = model.points
-            arrays["x"].from_numpy(rest)
+            arrays["x"].from_numpy(model.points.astype(real_numpy()))
         else:
-            for name in ("x", "v", "external"):
+            for name in ("x", "v"):
                 values = np.zeros((n, 3), dtype=real_numpy())
-                previous = old[name].to_numpy()
+                previous = old[name].to_numpy()[:n]
                 values[:len(previous)] = previous
+                if name == "x":     # new nodes start at rest
+                    values[len(previous):] = model.points[len(previous):]
                 arrays[name].from_numpy(values)
-            arrays["parameters"].from_numpy(old["parameters"].to_numpy())
+            external = np.zeros((n, 3), dtype=real_numpy())
+            external[:min(n, len(self._external))] = self._external[:n]
+            arrays["external"].from_numpy(external)
+            arrays["parameters"].from_numpy(self.parameters.array().astype(real_numpy()))
         self.arrays = arrays
         self.state = STATE(**arrays)
         self.x, self.v = arrays["x"], arrays["v"]
-        self._version = model.version
+        self._version = key
 
     def topology_changed(self, edit) -> None:
         self._resize()
@@ -291,7 +298,7 @@ class ImplicitEuler:
         """Nodal forces (n, 3) in newtons applied from the next step on (tip loads, an
         instrument's push); None removes them. Forces at fixed nodes have no effect."""
         n = self.model.n_nodes
-        values = np.zeros((self.model.node_capacity, 3), dtype=real_numpy())
+        values = np.zeros((n, 3), dtype=real_numpy())
         if forces is not None:
             forces = np.asarray(forces, dtype=np.float64)
             if forces.shape != (n, 3):
@@ -301,23 +308,22 @@ class ImplicitEuler:
                 raise TissueError(f"external forces: non-finite values at nodes {bad[:10].tolist()}")
             values[:n] = forces
         self._resize()
+        self._external = values
         self.arrays["external"].from_numpy(values)
 
     def positions(self) -> np.ndarray:
         self._resize()
-        return self.x.to_numpy()[:self.model.n_nodes].astype(np.float64)
+        return self.x.to_numpy().astype(np.float64)
 
     def velocities(self) -> np.ndarray:
         self._resize()
-        return self.v.to_numpy()[:self.model.n_nodes].astype(np.float64)
+        return self.v.to_numpy().astype(np.float64)
 
     def set_state(self, positions=None, velocities=None) -> None:
         self._resize()
         for array, values in ((self.x, positions), (self.v, velocities)):
             if values is not None:
-                padded = array.to_numpy()
-                padded[:self.model.n_nodes] = np.asarray(values, dtype=np.float64)
-                array.from_numpy(padded)
+                array.from_numpy(np.asarray(values, dtype=real_numpy()).reshape(self.model.n_nodes, 3))
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 

@@ -1,0 +1,194 @@
+"""The engine: kernels compiled once per process whatever the mesh, size and parameters; step
+parameters changed on a live solver; topology edits of the model in place (tissue.fem.model).
+
+References: the scipy direct solve of the same step (tissue.solver.reference), a solver built fresh
+with the same settings, and a body built fresh on the edited mesh. Compilation is counted from
+Taichi's kernel objects (tissue.compilation.count: compiled kernel instances in this process).
+"""
+
+import numpy as np
+import pytest
+
+from tissue import compilation
+from tissue.errors import TissueError
+from tissue.fem import CorotationalFEM, Material
+from tissue.fem.model import DETACHED, HELD, BodyModel
+from tissue.mesh import TetMesh, beam, box
+from tissue.solver import CGSettings, ImplicitEuler
+from tissue.solver import reference as ref
+
+MATERIAL = Material(young=1e5, poisson=0.3, density=1000.0)
+TIGHT = CGSettings(max_iterations=2000, tolerance=1e-13)
+
+
+def clamped(mesh):
+    return np.flatnonzero(mesh.points[:, 0] < mesh.points[:, 0].min() + 1e-12)
+
+
+def strained_state(mesh, seed):
+    rng = np.random.default_rng(seed)
+    return mesh.points + 0.01 * rng.standard_normal(mesh.points.shape), 0.1 * rng.standard_normal(mesh.points.shape)
+
+
+def rel(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+def test_bodies_of_three_sizes_compile_once(backend):
+    """Three beams of 144 to 1,080 tetrahedra with different dt, damping, gravity and CG caps,
+    stepped one after another: after the first, nothing compiles; each step equals the direct solve
+    (CG to 1e-13, so the result is set by the direct solve: 1e-10 relative)."""
+    meshes = [beam(1.0, 0.2, 0.2, cells_along=6, cells_across=2), beam(1.0, 0.2, 0.2, cells_along=10, cells_across=3),
+              beam(2.0, 0.3, 0.3, cells_along=20, cells_across=3)]
+    settings = [dict(dt=0.01, gravity=(0.0, 0.0, -9.81), rayleigh_mass=0.1, rayleigh_stiffness=0.01),
+                dict(dt=0.004, gravity=(0.0, -2.0, -9.81), rayleigh_mass=0.5, rayleigh_stiffness=0.0),
+                dict(dt=0.02, gravity=(1.0, 0.0, -3.0), rayleigh_mass=0.0, rayleigh_stiffness=0.02)]
+    caps = [CGSettings(max_iterations=3000, tolerance=1e-13), CGSettings(max_iterations=2500, tolerance=1e-13),
+            CGSettings(max_iterations=4000, tolerance=1e-13, threshold=1e-40)]
+    counts = []
+    for i, (mesh, step, cg) in enumerate(zip(meshes, settings, caps)):
+        solver = ImplicitEuler(CorotationalFEM(mesh, MATERIAL, rotation="polar"), cg=cg, fixed=clamped(mesh),
+                               execution="serial", **step)
+        x0, v0 = strained_state(mesh, i)
+        solver.set_state(x0, v0)
+        solver.step()
+        x_ref, v_ref = ref.reference_step(mesh, MATERIAL, x0, v0, fixed=clamped(mesh), rotation="polar", **step)
+        assert rel(solver.velocities(), v_ref) <= 1e-10, i
+        assert rel(solver.positions() - x0, x_ref - x0) <= 1e-10, i
+        counts.append(compilation.count())     # after reading back: Taichi's copy kernels count too
+    assert counts[1] == counts[0] and counts[2] == counts[0], f"kernels compiled per body: {counts}"
+
+
+@pytest.mark.parametrize("execution", ["serial", "parallel"])
+def test_changed_parameters_step_as_a_fresh_solver(backend, execution):
+    """dt, damping and the CG cap changed on a live solver give the next step of a solver built
+    with them (1e-12), and compile nothing."""
+    mesh = beam(1.0, 0.2, 0.2, cells_along=6, cells_across=2)
+    before = dict(dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.01, cg=CGSettings(max_iterations=40))
+    after = dict(dt=0.003, rayleigh_mass=0.7, rayleigh_stiffness=0.05, cg=CGSettings(max_iterations=9))
+    live = ImplicitEuler(CorotationalFEM(mesh, MATERIAL), fixed=clamped(mesh), execution=execution, **before)
+    x0, v0 = strained_state(mesh, 3)
+    live.set_state(x0, v0)
+    live.step()
+    x1, v1 = live.positions(), live.velocities()
+    start = compilation.count()
+    live.set_parameters(**after)
+    live.step()
+    assert compilation.count() == start
+    fresh = ImplicitEuler(CorotationalFEM(mesh, MATERIAL), fixed=clamped(mesh), execution=execution, **after)
+    fresh.set_state(x1, v1)
+    fresh.step()
+    assert live.stats.counters["cg_iterations"] == 9 == fresh.stats.counters["cg_iterations"]
+    assert np.abs(live.positions() - fresh.positions()).max() <= 1e-12 * np.abs(x1).max()
+    assert np.abs(live.velocities() - fresh.velocities()).max() <= 1e-12 * max(1.0, np.abs(v1).max())
+
+
+def test_live_parameters_are_validated(backend):
+    mesh = box(size=(1, 1, 1), cells=(1, 1, 1))
+    solver = ImplicitEuler(CorotationalFEM(mesh, MATERIAL), 0.01)
+    with pytest.raises(TissueError, match="dt"):
+        solver.set_parameters(dt=-1.0)
+    with pytest.raises(TissueError, match="preconditioner"):
+        solver.set_parameters(cg=CGSettings(preconditioner="jacobi"))
+    assert solver.dt == 0.01
+
+
+def edited_mesh(seed=0):
+    """A 4×3×3-cell box (216 tets); 10 % of its elements removed, 2 nodes added and 4 elements
+    over them (inside the removed region's holes, positively oriented)."""
+    mesh = box(size=(0.4, 0.3, 0.3), cells=(4, 3, 3))
+    rng = np.random.default_rng(seed)
+    removed = rng.choice(mesh.n_tets, mesh.n_tets // 10, replace=False)
+    # New nodes: centroids of two removed elements, each joined to its element's 4 corners.
+    hosts = removed[:2]
+    new_points = mesh.points[mesh.tets[hosts]].mean(axis=1)
+    return mesh, removed, hosts, new_points
+
+
+def split_into_four(tets, centre_ids):
+    """Each tet (a, b, c, d) around its centre c: the 4 tets with one face each and the centre."""
+    faces = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward, as mesh.surface
+    out = []
+    for t, c in zip(tets, centre_ids):
+        for f in faces:
+            out.append([t[f[0]], t[f[2]], t[f[1]], c])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("execution", ["serial", "parallel"])
+def test_topology_edits_step_as_a_fresh_body(backend, execution):
+    """Remove 10 % of the elements, add two nodes and split two removed elements' space into 4
+    each around them, on a live solver: the next step equals that of a body built fresh on the
+    resulting mesh (1e-12), with no new compilation; mass follows (Σ = ρ × volume kept)."""
+    mesh, removed, hosts, new_points = edited_mesh()
+    fixed = clamped(mesh)
+    live = ImplicitEuler(CorotationalFEM(mesh, MATERIAL, rotation="polar"), 0.01, fixed=fixed, execution=execution,
+                         cg=TIGHT, rayleigh_mass=0.1)
+    x0, v0 = strained_state(mesh, 5)
+    live.set_state(x0, v0)
+    live.step()
+    x_step, v_step = live.positions(), live.velocities()   # (Taichi compiles its copy kernels on first use)
+    start = compilation.count()
+    model = live.model
+    model.remove_elements(removed)
+    ids = model.add_nodes(new_points)
+    model.add_elements(split_into_four(mesh.tets[hosts], ids))
+    x1 = np.vstack([x_step, new_points + 0.001])
+    v1 = np.vstack([v_step, np.zeros((2, 3))])
+    live.set_state(x1, v1)
+    live.step()
+    assert compilation.count() == start, "a topology edit compiled kernels"
+
+    edited = TetMesh(model.points.copy(), model.tets.astype(np.int64))
+    assert edited.n_tets == mesh.n_tets - len(removed) + 8
+    volume = edited.volumes.sum()
+    assert abs(model.mass.sum() - MATERIAL.density * volume) <= 1e-12 * model.mass.sum()
+    fresh = ImplicitEuler(CorotationalFEM(edited, MATERIAL, rotation="polar"), 0.01, fixed=fixed,
+                          execution=execution, cg=TIGHT, rayleigh_mass=0.1)
+    fresh.set_state(x1, v1)
+    fresh.step()
+    detached = model.held == DETACHED
+    assert np.abs(live.positions() - fresh.positions())[~detached].max() <= 1e-12
+    assert np.abs(live.velocities() - fresh.velocities())[~detached].max() <= 1e-12
+
+
+def test_model_edits_keep_its_invariants(backend):
+    """After edits: the gather index lists exactly each node's element corners, mass is Σ ρV/4,
+    nodes without elements are detached (and come back when used), held nodes stay held, and
+    the boundary faces are those of the remaining elements."""
+    from tissue.mesh import boundary_faces
+
+    mesh = box(size=(0.3, 0.3, 0.3), cells=(3, 3, 3))
+    model = BodyModel(mesh, MATERIAL, node_capacity=mesh.n_points, element_capacity=mesh.n_tets)
+    model.set_held([0, 1])
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        model.remove_elements(rng.choice(model.n_elements, 7, replace=False))
+    model.add_elements(mesh.tets[:40])                # grows the element storage past its capacity
+    assert model.growths >= 1 and model.n_elements == mesh.n_tets - 35 + 40
+    tets = model.tets
+    offsets, corners = model.incidence_csr()
+    for v in range(model.n_nodes):
+        expected = sorted(4 * e + a for e, a in zip(*np.nonzero(tets == v)))
+        assert sorted(corners[offsets[v]:offsets[v + 1]]) == expected
+    mass = np.zeros(model.n_nodes)
+    np.add.at(mass, tets.reshape(-1), np.repeat(MATERIAL.density * model.volumes / 4.0, 4))
+    np.testing.assert_allclose(model.mass, mass, rtol=1e-12, atol=1e-15)
+    unused = np.setdiff1d(np.arange(model.n_nodes), tets)
+    assert (model.held[unused] == DETACHED).all()
+    assert (model.held[np.setdiff1d(np.intersect1d([0, 1], tets), unused)] == HELD).all()
+    got = {tuple(np.roll(f, -np.argmin(f))) for f in model.boundary_faces()}
+    want = {tuple(np.roll(f, -np.argmin(f))) for f in boundary_faces(tets)}
+    assert got == want
+
+
+def test_edits_refuse_bad_elements(backend):
+    mesh = box(size=(0.3, 0.3, 0.3), cells=(1, 1, 1))
+    model = BodyModel(mesh, MATERIAL)
+    with pytest.raises(TissueError, match=r"tetrahedra \[0\].*inverted"):
+        model.add_elements(mesh.tets[:1][:, [1, 0, 2, 3]])
+    with pytest.raises(TissueError, match="out of range"):
+        model.add_elements([[0, 1, 2, 999]])
+    with pytest.raises(TissueError, match="out of range"):
+        model.remove_elements([mesh.n_tets])
+    assert model.n_elements == mesh.n_tets
