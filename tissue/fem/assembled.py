@@ -73,13 +73,10 @@ class _Blocks:
         real = backend.current().real
         return ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.matrix(3, 4, real)
 
-    def _upload_gradients(self, elements=None) -> None:
-        """The rest-shape gradients of these elements (default: all) into the device array."""
-        if elements is None or getattr(self, "_gradients", None) is None \
-                or len(self._gradients) != self.model.element_capacity:
-            self._gradients = np.zeros((self.model.element_capacity, 3, 4), dtype=real_numpy())
-            elements = np.arange(self.model.n_elements)
-        self._gradients[elements] = shape_gradients(self.model.Dm_inv[elements])
+    def _upload_gradients(self) -> None:
+        """The rest-shape gradients of every element, kept on the host too (edits change rows)."""
+        self._gradients = np.zeros((self.model.element_capacity, 3, 4), dtype=real_numpy())
+        self._gradients[:self.model.n_elements] = shape_gradients(self.model.Dm_inv)
         self.arrays["gradients"].from_numpy(self._gradients)
 
     def _pack(self, **arrays) -> None:
@@ -229,14 +226,15 @@ class SymmetricBlocks(_Blocks):
     def topology_changed(self, edit: Edit) -> None:
         if self.resize():
             return                                   # re-allocated: the pattern was rebuilt whole
+        first_new = len(self._upper)
         if len(edit.moved_to):
             self._slots[edit.moved_to] = self._slots[edit.moved_from]
+            self._gradients[edit.moved_to] = self._gradients[edit.moved_from]
         if len(edit.added):
             if self._pairs is None:
                 self._pairs = {(int(r), int(c)): j for j, (r, c) in enumerate(self._upper)}
-            tets = self.model.tets[edit.added]
             new = []
-            for row, t in zip(edit.added, tets):
+            for row, t in zip(edit.added, self.model.tets[edit.added]):
                 for k, (a, b) in enumerate(PAIRS):
                     key = (min(t[a], t[b]), max(t[a], t[b]))
                     j = self._pairs.get(key)
@@ -246,9 +244,20 @@ class SymmetricBlocks(_Blocks):
                     self._slots[row, k] = 2 * j + (t[b] < t[a])
             if new:
                 self._upper = np.concatenate([self._upper, np.array(new, dtype=np.int32)])
-        if len(edit.added) or len(edit.moved_to):
-            self._upload_gradients(np.concatenate([edit.added, edit.moved_to]).astype(np.int64))
-        self._upload_pattern()
+            self._gradients[edit.added] = shape_gradients(self.model.Dm_inv[edit.added])
+        if len(self._upper) > self.arrays["blocks"].shape[0]:
+            self._upload_pattern()                   # the blocks grow: everything anew
+            self.arrays["gradients"].from_numpy(self._gradients)
+            return
+        changed = np.unique(np.concatenate([edit.added, edit.moved_to]).astype(np.int64))
+        element_ints = np.full((max(len(changed), 1), 7), -1, dtype=np.int32)
+        element_ints[:len(changed)] = np.column_stack([changed, self._slots[changed]])
+        element_reals = np.zeros((max(len(changed), 1), 12), dtype=real_numpy())
+        element_reals[:len(changed)] = self._gradients[changed].reshape(-1, 12)
+        added = np.arange(first_new, len(self._upper))
+        pairs = np.full((max(len(added), 1), 3), -1, dtype=np.int32)
+        pairs[:len(added)] = np.column_stack([added, self._upper[added]])
+        _write_symmetric_rows(self.pack, element_ints, element_reals, pairs, len(self._upper))
 
     @property
     def n_blocks(self) -> int:
@@ -308,3 +317,28 @@ def symmetric_multiply(m: ti.template(), a: ti.template(), src: ti.template()):
         B = a.blocks[j]
         a.product[r] = a.product[r] + B @ src[c]
         a.product[c] = a.product[c] + B.transpose() @ src[r]
+
+
+@ti.kernel
+def _write_symmetric_rows(a: BLOCKS, element_ints: ti.types.ndarray(), element_reals: ti.types.ndarray(),
+                          pairs: ti.types.ndarray(), count: ti.i32):
+    """An edit's rows: per element (id, its 6 pair slots | gradients), per new block (slot, row,
+    column), and the block count; a row whose id is −1 is padding."""
+    ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
+    for r in range(element_ints.shape[0]):
+        e = element_ints[r, 0]
+        if e >= 0:
+            pair_slots = ti.Vector([0, 0, 0, 0, 0, 0])
+            for k in ti.static(range(6)):
+                pair_slots[k] = element_ints[r, 1 + k]
+            a.slots[e] = pair_slots
+            G = ti.Matrix.zero(float, 3, 4)
+            for i, j in ti.static(ti.ndrange(3, 4)):
+                G[i, j] = element_reals[r, 4 * i + j]
+            a.gradients[e] = G
+    ti.loop_config(serialize=True)
+    for r in range(pairs.shape[0]):
+        if pairs[r, 0] >= 0:
+            a.index[pairs[r, 0]] = ti.Vector([pairs[r, 1], pairs[r, 2]])
+    for _ in range(1):
+        a.counts[0] = count

@@ -24,7 +24,6 @@ Kernels read a model through its argpack (`model.pack`):
     incidence   i32 (nodes, slots)   … as 4 e + corner, the first `valence` slots of each row
 """
 
-from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, field
@@ -284,7 +283,7 @@ class BodyModel:
         self._incidence[ids] = -1
         self.n_nodes += len(points)
         self._faces = None
-        self._upload("counts", "rest", "held", "mass", "valence")
+        self._flush(nodes=ids)
         return ids
 
     def add_elements(self, tets, material: Material | None = None) -> np.ndarray:
@@ -313,8 +312,7 @@ class BodyModel:
         self._elastic[ids] = np.column_stack([volumes, np.full(len(tets), lam), np.full(len(tets), mu)])
         self._density[ids] = material.density
         self.n_elements += len(tets)
-        self._link(ids, +1)
-        self._upload("counts", "tets", "Dm_inv", "rest_frame", "elastic")
+        self._flush(elements=ids, nodes=self._link(ids, +1))
         self._notify(Edit(added=ids))
         return ids
 
@@ -325,29 +323,29 @@ class BodyModel:
         m = self.n_elements
         if len(ids) and (ids[0] < 0 or ids[-1] >= m):
             raise TissueError(f"remove_elements: ids out of range [0, {m}): {ids[(ids < 0) | (ids >= m)][:10].tolist()}")
-        self._link(ids, -1)
+        touched = [self._link(ids, -1)]
         keep = np.ones(m, dtype=bool)
         keep[ids] = False
         kept_tail = np.flatnonzero(keep[m - len(ids):]) + m - len(ids)   # survivors that must move
         holes = ids[ids < m - len(ids)]                                   # freed slots they fill
         where = np.where(keep, np.arange(m), -1)
         if len(holes):
-            self._link(kept_tail, -1)
+            touched.append(self._link(kept_tail, -1))
             for name in ("_tets", "_Dm_inv", "_rest_frame", "_elastic", "_density"):
                 array = getattr(self, name)
                 array[holes] = array[kept_tail]
             where[kept_tail] = holes
         self.n_elements = m - len(ids)
         if len(holes):
-            self._link(holes, +1)
-        self._upload("counts", "tets", "Dm_inv", "rest_frame", "elastic")
+            touched.append(self._link(holes, +1))
+        self._flush(elements=holes, nodes=np.concatenate(touched))
         self._notify(Edit(moved_from=kept_tail, moved_to=holes))
         return where
 
-    def _link(self, ids: np.ndarray, sign: int) -> None:
-        """Add (+1) or take away (−1) elements' mass, gather entries and boundary faces."""
+    def _link(self, ids: np.ndarray, sign: int) -> np.ndarray:
+        """Add (+1) or take away (−1) elements' mass and gather entries; returns the nodes touched."""
         if len(ids) == 0:
-            return
+            return np.zeros(0, dtype=np.int64)
         tets = self._tets[ids]
         share = np.repeat(self._density[ids] * self._elastic[ids, 0] / 4.0, 4)
         np.add.at(self._mass, tets.reshape(-1), sign * share)
@@ -373,8 +371,58 @@ class BodyModel:
         held[touched[(self._valence[touched] == 0)]] = DETACHED
         held[touched[(self._valence[touched] > 0) & (held[touched] == DETACHED)]] = 0
         self._faces = None
-        self._upload("mass", "held", "valence", "incidence")
+        return touched
+
+    def _flush(self, elements=(), nodes=()) -> None:
+        """Write these elements' and nodes' rows, and the counts, to the device in one launch
+        (an edit touches a few rows: uploading whole arrays would cost far more)."""
+        real = self._real
+        e = np.unique(np.asarray(elements, dtype=np.int64))
+        v = np.unique(np.asarray(nodes, dtype=np.int64))
+        element_ints = np.full((max(len(e), 1), 5), -1, dtype=np.int32)
+        element_ints[:len(e)] = np.column_stack([e, self._tets[e]])
+        element_reals = np.zeros((max(len(e), 1), 21), dtype=real)
+        element_reals[:len(e)] = np.column_stack([self._Dm_inv[e].reshape(-1, 9), self._rest_frame[e].reshape(-1, 9),
+                                                  self._elastic[e]])
+        slots = self._incidence.shape[1]
+        node_ints = np.full((max(len(v), 1), 3 + slots), -1, dtype=np.int32)
+        node_ints[:len(v)] = np.column_stack([v, self._held[v], self._valence[v], self._incidence[v]])
+        node_reals = np.zeros((max(len(v), 1), 4), dtype=real)
+        node_reals[:len(v)] = np.column_stack([self._rest[v], self._mass[v]])
+        _write_rows(self.pack, element_ints, element_reals, node_ints, node_reals, self.n_nodes, self.n_elements)
 
 
 def real_ti():
     return backend.current().real
+
+
+@ti.kernel
+def _write_rows(m: MODEL, element_ints: ti.types.ndarray(), element_reals: ti.types.ndarray(),
+                node_ints: ti.types.ndarray(), node_reals: ti.types.ndarray(), n_nodes: ti.i32, n_elements: ti.i32):
+    """Rows of an edit: per element (id, tets | Dm⁻¹, rest frame, V λ μ), per node (id, held,
+    valence, incidence | rest, mass); a row whose id is −1 is padding."""
+    ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
+    for r in range(element_ints.shape[0]):
+        e = element_ints[r, 0]
+        if e >= 0:
+            m.tets[e] = ti.Vector([element_ints[r, 1], element_ints[r, 2], element_ints[r, 3], element_ints[r, 4]])
+            inverse_edges, frame = ti.Matrix.zero(float, 3, 3), ti.Matrix.zero(float, 3, 3)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                inverse_edges[a, b] = element_reals[r, 3 * a + b]
+                frame[a, b] = element_reals[r, 9 + 3 * a + b]
+            m.Dm_inv[e] = inverse_edges
+            m.rest_frame[e] = frame
+            m.elastic[e] = ti.Vector([element_reals[r, 18], element_reals[r, 19], element_reals[r, 20]])
+    ti.loop_config(serialize=True)
+    for r in range(node_ints.shape[0]):
+        v = node_ints[r, 0]
+        if v >= 0:
+            m.held[v] = node_ints[r, 1]
+            m.valence[v] = node_ints[r, 2]
+            for k in range(node_ints.shape[1] - 3):
+                m.incidence[v, k] = node_ints[r, 3 + k]
+            m.rest[v] = ti.Vector([node_reals[r, 0], node_reals[r, 1], node_reals[r, 2]])
+            m.mass[v] = node_reals[r, 3]
+    for _ in range(1):
+        m.counts[0] = n_nodes
+        m.counts[1] = n_elements
