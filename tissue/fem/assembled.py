@@ -27,8 +27,9 @@ from .model import BodyModel, Edit, real_numpy
 
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
 
-# counts[0]: blocks in use. Members a layout does not use hold one entry.
-BLOCKS = ti.types.argpack(counts=ti.types.ndarray(), gradients=ti.types.ndarray(), rotated=ti.types.ndarray(),
+# block_count[0]: blocks in use. Members a layout does not use hold one entry. A step's argpack
+# (tissue.solver.implicit_euler.STEP) holds these members too.
+BLOCKS = ti.types.argpack(block_count=ti.types.ndarray(), gradients=ti.types.ndarray(), rotated=ti.types.ndarray(),
                           slots=ti.types.ndarray(), index=ti.types.ndarray(), offsets=ti.types.ndarray(),
                           blocks=ti.types.ndarray(), diagonal=ti.types.ndarray(), product=ti.types.ndarray())
 
@@ -94,7 +95,7 @@ class BlockRows(_Blocks):
     def _allocate(self) -> None:
         vec3, mat3, mat34 = self._types()
         model = self.model
-        self._pack(counts=ti.ndarray(ti.i32, 1), gradients=ti.ndarray(mat34, model.element_capacity),
+        self._pack(block_count=ti.ndarray(ti.i32, 1), gradients=ti.ndarray(mat34, model.element_capacity),
                    rotated=ti.ndarray(mat34, model.element_capacity),
                    offsets=ti.ndarray(ti.i32, model.node_capacity + 1),
                    diagonal=ti.ndarray(ti.i32, model.node_capacity),
@@ -134,7 +135,7 @@ class BlockRows(_Blocks):
         slots[flat] = np.searchsorted(keys, node[:, None] * n + tets[element])
         diagonal = np.zeros(model.node_capacity, dtype=np.int32)
         diagonal[:n] = np.searchsorted(keys, np.arange(n, dtype=np.int64) * (n + 1))
-        self.arrays["counts"].from_numpy(np.array([self.n_blocks], dtype=np.int32))
+        self.arrays["block_count"].from_numpy(np.array([self.n_blocks], dtype=np.int32))
         self.arrays["offsets"].from_numpy(offsets)
         self.arrays["index"].from_numpy(columns)
         self.arrays["slots"].from_numpy(slots)
@@ -188,7 +189,7 @@ class SymmetricBlocks(_Blocks):
     def _allocate(self) -> None:
         vec3, mat3, mat34 = self._types()
         model = self.model
-        self._pack(counts=ti.ndarray(ti.i32, 1), gradients=ti.ndarray(mat34, model.element_capacity),
+        self._pack(block_count=ti.ndarray(ti.i32, 1), gradients=ti.ndarray(mat34, model.element_capacity),
                    slots=ti.ndarray(ti.types.vector(6, ti.i32), model.element_capacity),
                    diagonal=ti.ndarray(mat3, model.node_capacity), product=ti.ndarray(vec3, model.node_capacity),
                    index=ti.ndarray(ti.types.vector(2, ti.i32), 1), blocks=ti.ndarray(mat3, 1))
@@ -221,7 +222,7 @@ class SymmetricBlocks(_Blocks):
         index[:count] = self._upper
         self.arrays["index"].from_numpy(index)
         self.arrays["slots"].from_numpy(self._slots)
-        self.arrays["counts"].from_numpy(np.array([count], dtype=np.int32))
+        self.arrays["block_count"].from_numpy(np.array([count], dtype=np.int32))
 
     def topology_changed(self, edit: Edit) -> None:
         if self.resize():
@@ -286,7 +287,7 @@ class SymmetricBlocks(_Blocks):
 
 @ti.func
 def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
-    for j in range(a.counts[0]):
+    for j in range(a.block_count[0]):
         a.blocks[j] = ti.Matrix.zero(float, 3, 3)
     for v in range(m.counts[0]):
         a.diagonal[v] = ti.Matrix.zero(float, 3, 3)
@@ -312,7 +313,7 @@ def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
 def symmetric_multiply(m: ti.template(), a: ti.template(), src: ti.template()):
     for v in range(m.counts[0]):
         a.product[v] = a.diagonal[v] @ src[v]
-    for j in range(a.counts[0]):
+    for j in range(a.block_count[0]):
         r, c = a.index[j][0], a.index[j][1]
         B = a.blocks[j]
         a.product[r] = a.product[r] + B @ src[c]
@@ -341,4 +342,4 @@ def _write_symmetric_rows(a: BLOCKS, element_ints: ti.types.ndarray(), element_r
         if pairs[r, 0] >= 0:
             a.index[pairs[r, 0]] = ti.Vector([pairs[r, 1], pairs[r, 2]])
     for _ in range(1):
-        a.counts[0] = count
+        a.block_count[0] = count

@@ -354,9 +354,10 @@ class CorotationalFEM:
         n, m = model.node_capacity, model.element_capacity
         self.R = ti.ndarray(mat3, m)      # every step recomputes the rotations before using them
         self.R.from_numpy(np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1)))
-        self.work = FEM_WORK(R=self.R, inverted=ti.ndarray(ti.i32, 1),
-                             buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
-                             accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
+        self.work_arrays = dict(R=self.R, inverted=ti.ndarray(ti.i32, 1),
+                                buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
+                                accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
+        self.work = FEM_WORK(**self.work_arrays)
         self._io = [ti.ndarray(vec3, n) for _ in range(2)]
         self._version = model.version
         return True

@@ -31,7 +31,7 @@ from ..fem.model import DETACHED, MODEL, real_numpy
 from ..launch import replayed
 from ..stats import Stats
 from . import multigrid
-from .multigrid import MULTIGRID, Multigrid
+from .multigrid import MULTIGRID_MEMBERS, Multigrid
 
 PRECONDITIONERS = ("none", "jacobi", "multigrid")
 EXECUTIONS = ("auto", "serial", "parallel")
@@ -89,12 +89,14 @@ class Scheme:
 
 # The step's state on the device: nodal vectors, the block-diagonal inverse (preconditioners),
 # the CG scalars (slots above), blocked partial sums, and the step's parameters (slots below).
-STATE = ti.types.argpack(x=ti.types.ndarray(), v=ti.types.ndarray(), dv=ti.types.ndarray(),
-                         r=ti.types.ndarray(), z=ti.types.ndarray(), p=ti.types.ndarray(),
-                         q=ti.types.ndarray(), external=ti.types.ndarray(), block_inverse=ti.types.ndarray(),
-                         scalars=ti.types.ndarray(), partial=ti.types.ndarray(), parameters=ti.types.ndarray())
+STATE_MEMBERS = ("x", "v", "dv", "r", "z", "p", "q", "external", "block_inverse", "scalars", "partial", "parameters")
 DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERATIONS = range(9)
-STEP = ti.types.argpack(model=MODEL, fem=FEM_WORK, state=STATE, blocks=BLOCKS, multigrid=MULTIGRID)
+# A step's kernels take one flat argpack: the members of the model (MODEL), the FEM's work
+# (FEM_WORK), the state, the assembled blocks (BLOCKS) and the multigrid. Flat, because a kernel
+# reloads an ndarray's address after every store to an ndarray (they might alias), one load per
+# level of nesting: measured here, a nested pack cost ~30 % more than a flat one in such loops.
+STEP_MEMBERS = (*MODEL.members, *FEM_WORK.members, *STATE_MEMBERS, *BLOCKS.members, *MULTIGRID_MEMBERS)
+STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS})
 # Nodes per block of the partial sums (dot products summed in a fixed order: bit-identical reruns).
 BLOCK = 1024
 
@@ -262,7 +264,6 @@ class ImplicitEuler:
             arrays["external"].from_numpy(external)
             arrays["parameters"].from_numpy(self.parameters.array().astype(real_numpy()))
         self.arrays = arrays
-        self.state = STATE(**arrays)
         self.x, self.v = arrays["x"], arrays["v"]
         self._version = key
 
@@ -272,14 +273,14 @@ class ImplicitEuler:
             self.multigrid.rebuild()
 
     def _step_pack(self):
-        """The argpack of a launch, rebuilt only when one of its parts was re-allocated."""
+        """The argpack of a launch, rebuilt only when one of its arrays was re-allocated."""
         self._resize()
-        parts = (self.model.pack, self.fem.work, self.state,
-                 self.matrix.pack if self.matrix is not None else _none_blocks(),
-                 self.multigrid.pack if self.multigrid is not None else _none_multigrid())
-        key = tuple(id(p) for p in parts)
+        arrays = {**self.model.arrays, **self.fem.work_arrays, **self.arrays,
+                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCKS.members)),
+                  **(self.multigrid.arrays if self.multigrid is not None else _unused(MULTIGRID_MEMBERS))}
+        key = tuple(id(a) for a in arrays.values())
         if key != self._pack_key:
-            self._pack = STEP(model=parts[0], fem=parts[1], state=parts[2], blocks=parts[3], multigrid=parts[4])
+            self._pack = STEP(**arrays)
             self._pack_key = key
         return self._pack
 
@@ -382,19 +383,14 @@ class ImplicitEuler:
         return self.positions()
 
 
-@functools.cache
-def _none_blocks():
-    """The blocks argument of a matrix-free scheme (never read)."""
-    one = ti.ndarray(ti.i32, 1)
-    return BLOCKS(counts=one, gradients=one, rotated=one, slots=one, index=one, offsets=one, blocks=one,
-                  diagonal=one, product=one)
+def _unused(members) -> dict:
+    """Arrays for the members a scheme does not read (one entry each)."""
+    return {name: _ONE() for name in members}
 
 
 @functools.cache
-def _none_multigrid():
-    """The multigrid argument of a scheme without it (never read)."""
-    one = ti.ndarray(ti.i32, 1)
-    return MULTIGRID(**{name: one for name in MULTIGRID.members})
+def _ONE():
+    return ti.ndarray(ti.i32, 1)
 
 
 # ---- kernels: a step is begin, CG iterations, end, over the launch's argpack `k` and scheme `o` ----
@@ -403,19 +399,19 @@ def _none_multigrid():
 @ti.func
 def _sum_partials(k: ti.template(), slot):
     s = 0.0
-    for b in range((k.model.counts[0] + BLOCK - 1) // BLOCK):
-        s += k.state.partial[slot, b]
+    for b in range((k.counts[0] + BLOCK - 1) // BLOCK):
+        s += k.partial[slot, b]
     return s
 
 
 @ti.func
 def _blocks(k: ti.template()):
-    return (k.model.counts[0] + BLOCK - 1) // BLOCK
+    return (k.counts[0] + BLOCK - 1) // BLOCK
 
 
 @ti.func
 def _block_nodes(k: ti.template(), b):
-    return b * BLOCK, ti.min((b + 1) * BLOCK, k.model.counts[0])
+    return b * BLOCK, ti.min((b + 1) * BLOCK, k.counts[0])
 
 
 @ti.func
@@ -423,7 +419,7 @@ def _preconditioned(k: ti.template(), o: ti.template(), v, r):
     """z = P⁻¹ r node by node; multigrid couples nodes, so it runs after (_precondition_coupled)."""
     z = r
     if ti.static(o.preconditioner == "jacobi"):
-        z = k.state.block_inverse[v] @ r
+        z = k.block_inverse[v] @ r
     return z
 
 
@@ -431,9 +427,9 @@ def _preconditioned(k: ti.template(), o: ti.template(), v, r):
 def multiply(k: ti.template(), o: ti.template(), src: ti.template()):
     """The pass that a product needs before `_stiffness_times(v, src)` can read node v."""
     if ti.static(o.operator == "matrix_free"):
-        corotational.scatter(k.model, k.fem, "stiffness", src, o.accumulation)
+        corotational.scatter(k, k, "stiffness", src, o.accumulation)
     elif ti.static(o.layout == "symmetric"):
-        assembled.symmetric_multiply(k.model, k.blocks, src)
+        assembled.symmetric_multiply(k, k, src)
 
 
 @ti.func
@@ -441,26 +437,26 @@ def _stiffness_times(k: ti.template(), o: ti.template(), v, src: ti.template()):
     """(Σ R Kₑ Rᵀ src) at node v, after `multiply(src)`."""
     Kp = ti.Vector([0.0, 0.0, 0.0])
     if ti.static(o.operator == "matrix_free"):
-        Kp = -corotational.gathered(k.model, k.fem, v, o.accumulation)
+        Kp = -corotational.gathered(k, k, v, o.accumulation)
     elif ti.static(o.layout == "symmetric"):
-        Kp = k.blocks.product[v]
+        Kp = k.product[v]
     else:
-        Kp = assembled.rows_product(k.blocks, v, src)
+        Kp = assembled.rows_product(k, v, src)
     return Kp
 
 
 @ti.func
 def factors(k: ti.template()):
     """The coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ."""
-    h = k.state.parameters[DT]
-    return 1.0 + h * k.state.parameters[MASS_DAMPING], h * k.state.parameters[STIFFNESS_DAMPING] + h * h
+    h = k.parameters[DT]
+    return 1.0 + h * k.parameters[MASS_DAMPING], h * k.parameters[STIFFNESS_DAMPING] + h * h
 
 
 @ti.func
 def operator_row(k: ti.template(), o: ti.template(), v, src: ti.template(), mass_factor, stiffness_factor):
     """(A src) at node v, filtered (zero at held and detached nodes), after `multiply(src)`."""
-    qv = mass_factor * k.model.mass[v] * src[v] + stiffness_factor * _stiffness_times(k, o, v, src)
-    if k.model.held[v] != 0:
+    qv = mass_factor * k.mass[v] * src[v] + stiffness_factor * _stiffness_times(k, o, v, src)
+    if k.held[v] != 0:
         qv = ti.Vector([0.0, 0.0, 0.0])
     return qv
 
@@ -469,11 +465,11 @@ def operator_row(k: ti.template(), o: ti.template(), v, src: ti.template(), mass
 def _stiffness_diagonal(k: ti.template(), o: ti.template(), v):
     K = ti.Matrix.zero(float, 3, 3)
     if ti.static(o.operator == "matrix_free"):
-        K = corotational.stiffness_diagonal(k.model, k.fem, v)
+        K = corotational.stiffness_diagonal(k, k, v)
     elif ti.static(o.layout == "symmetric"):
-        K = k.blocks.diagonal[v]
+        K = k.diagonal[v]
     else:
-        K = k.blocks.blocks[k.blocks.diagonal[v]]
+        K = k.blocks[k.diagonal[v]]
     return K
 
 
@@ -482,154 +478,154 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first: ti.template
     """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first), and rᵀz into
     partial[0] in place of the node-by-node value."""
     if ti.static(o.preconditioner == "multigrid"):
-        multigrid.apply(k, o, k.state.r, k.state.z)
+        multigrid.apply(k, o, k.r, k.z)
         for b in range(_blocks(k)):
             rz = 0.0
-            if k.state.scalars[DONE] == 0:
+            if k.scalars[DONE] == 0:
                 begin, end = _block_nodes(k, b)
                 for v in range(begin, end):
                     if ti.static(first):
-                        k.state.p[v] = k.state.z[v]
-                    rz += k.state.r[v].dot(k.state.z[v])
-            k.state.partial[0, b] = rz
+                        k.p[v] = k.z[v]
+                    rz += k.r[v].dot(k.z[v])
+            k.partial[0, b] = rz
 
 
 @ti.func
 def _begin(k: ti.template(), o: ti.template(), tol):
-    h = k.state.parameters[DT]
+    h = k.parameters[DT]
     mass_factor, stiffness_factor = factors(k)
-    g = ti.Vector([k.state.parameters[GX], k.state.parameters[GY], k.state.parameters[GZ]])
-    corotational.update_rotations(k.model, k.fem, k.state.x, o.rotation, tol)
+    g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
+    corotational.update_rotations(k, k, k.x, o.rotation, tol)
     if ti.static(o.operator == "assembled"):
         if ti.static(o.layout == "symmetric"):
-            assembled.symmetric_assemble(k.model, k.fem, k.blocks)
+            assembled.symmetric_assemble(k, k, k)
         else:
-            assembled.rows_assemble(k.model, k.fem, k.blocks)
+            assembled.rows_assemble(k, k, k)
     if ti.static(o.preconditioner == "multigrid"):
         multigrid.update_rotations(k, tol)
         for _ in range(1):  # the V-cycle's loops run while DONE is 0
-            k.state.scalars[DONE] = 0
-    corotational.scatter(k.model, k.fem, "force", k.state.x, o.accumulation)
-    for v in range(k.model.counts[0]):  # the forces f(x, v), kept in r until the right-hand side is complete
-        mv = k.model.mass[v]
-        k.state.r[v] = corotational.gathered(k.model, k.fem, v, o.accumulation) + mv * g + k.state.external[v] \
-            - k.state.parameters[MASS_DAMPING] * mv * k.state.v[v]
-    multiply(k, o, k.state.v)
+            k.scalars[DONE] = 0
+    corotational.scatter(k, k, "force", k.x, o.accumulation)
+    for v in range(k.counts[0]):  # the forces f(x, v), kept in r until the right-hand side is complete
+        mv = k.mass[v]
+        k.r[v] = corotational.gathered(k, k, v, o.accumulation) + mv * g + k.external[v] \
+            - k.parameters[MASS_DAMPING] * mv * k.v[v]
+    multiply(k, o, k.v)
     for b in range(_blocks(k)):
         rz, rr = 0.0, 0.0
         begin, end = _block_nodes(k, b)
         for v in range(begin, end):
-            rhs = h * k.state.r[v] - stiffness_factor * _stiffness_times(k, o, v, k.state.v)
-            if k.model.held[v] != 0:
+            rhs = h * k.r[v] - stiffness_factor * _stiffness_times(k, o, v, k.v)
+            if k.held[v] != 0:
                 rhs = ti.Vector([0.0, 0.0, 0.0])
             if ti.static(o.preconditioner != "none"):
-                A = mass_factor * k.model.mass[v] * ti.Matrix.identity(float, 3) + stiffness_factor * _stiffness_diagonal(k, o, v)
-                if k.model.held[v] == DETACHED:   # no element: A is zero there, and so is r
+                A = mass_factor * k.mass[v] * ti.Matrix.identity(float, 3) + stiffness_factor * _stiffness_diagonal(k, o, v)
+                if k.held[v] == DETACHED:   # no element: A is zero there, and so is r
                     A = ti.Matrix.identity(float, 3)
-                k.state.block_inverse[v] = A.inverse()
+                k.block_inverse[v] = A.inverse()
             z = _preconditioned(k, o, v, rhs)
-            k.state.dv[v] = ti.Vector([0.0, 0.0, 0.0])
-            k.state.r[v] = rhs
-            k.state.z[v] = z
-            k.state.p[v] = z
+            k.dv[v] = ti.Vector([0.0, 0.0, 0.0])
+            k.r[v] = rhs
+            k.z[v] = z
+            k.p[v] = z
             rz += rhs.dot(z)
             rr += rhs.dot(rhs)
-        k.state.partial[0, b] = rz
-        k.state.partial[1, b] = rr
+        k.partial[0, b] = rz
+        k.partial[1, b] = rr
     _precondition_coupled(k, o, True)
     for _ in range(1):
         delta = _sum_partials(k, 0)
-        k.state.scalars[DELTA] = delta
-        k.state.scalars[DELTA0] = delta
-        k.state.scalars[RHS2] = _sum_partials(k, 1)
-        k.state.scalars[ITERATION] = 0
-        k.state.scalars[BREAKDOWN] = 0
-        k.state.scalars[DONE] = 1 if delta <= 0 else 0
+        k.scalars[DELTA] = delta
+        k.scalars[DELTA0] = delta
+        k.scalars[RHS2] = _sum_partials(k, 1)
+        k.scalars[ITERATION] = 0
+        k.scalars[BREAKDOWN] = 0
+        k.scalars[DONE] = 1 if delta <= 0 else 0
 
 
 @ti.func
 def _iteration(k: ti.template(), o: ti.template()):
     if ti.static(o.operator == "matrix_free"):
-        for e in range(k.model.counts[1]):  # element stage, skipped once converged
-            if k.state.scalars[DONE] == 0:
-                corotational.scatter_element(k.model, k.fem, "stiffness", e, k.state.p, o.accumulation)
+        for e in range(k.counts[1]):  # element stage, skipped once converged
+            if k.scalars[DONE] == 0:
+                corotational.scatter_element(k, k, "stiffness", e, k.p, o.accumulation)
     elif ti.static(o.layout == "symmetric"):
-        assembled.symmetric_multiply(k.model, k.blocks, k.state.p)  # serial only (rows multiply on demand)
+        assembled.symmetric_multiply(k, k, k.p)  # serial only (rows multiply on demand)
     mass_factor, stiffness_factor = factors(k)
     for b in range(_blocks(k)):  # q = A p (filtered), and pᵀq
         pq = 0.0
-        if k.state.scalars[DONE] == 0:
+        if k.scalars[DONE] == 0:
             begin, end = _block_nodes(k, b)
             for v in range(begin, end):
-                qv = operator_row(k, o, v, k.state.p, mass_factor, stiffness_factor)
-                k.state.q[v] = qv
-                pq += k.state.p[v].dot(qv)
-        k.state.partial[0, b] = pq
+                qv = operator_row(k, o, v, k.p, mass_factor, stiffness_factor)
+                k.q[v] = qv
+                pq += k.p[v].dot(qv)
+        k.partial[0, b] = pq
     for _ in range(1):
-        if k.state.scalars[DONE] == 0:
+        if k.scalars[DONE] == 0:
             pq = _sum_partials(k, 0)
-            k.state.scalars[PQ] = pq
-            if not (ti.abs(pq) > k.state.parameters[THRESHOLD]) or not (pq == pq):
-                k.state.scalars[DONE] = 1
+            k.scalars[PQ] = pq
+            if not (ti.abs(pq) > k.parameters[THRESHOLD]) or not (pq == pq):
+                k.scalars[DONE] = 1
                 if pq < 0 or not (pq == pq):
-                    k.state.scalars[BREAKDOWN] = 1
+                    k.scalars[BREAKDOWN] = 1
             else:
-                k.state.scalars[ALPHA] = k.state.scalars[DELTA] / pq
+                k.scalars[ALPHA] = k.scalars[DELTA] / pq
     for b in range(_blocks(k)):  # dv += α p, r -= α q, z = P⁻¹ r, and rᵀz
         rz = 0.0
-        if k.state.scalars[DONE] == 0:
-            alpha = k.state.scalars[ALPHA]
+        if k.scalars[DONE] == 0:
+            alpha = k.scalars[ALPHA]
             begin, end = _block_nodes(k, b)
             for v in range(begin, end):
-                k.state.dv[v] = k.state.dv[v] + alpha * k.state.p[v]  # rows are owned: no atomics
-                r = k.state.r[v] - alpha * k.state.q[v]
+                k.dv[v] = k.dv[v] + alpha * k.p[v]  # rows are owned: no atomics
+                r = k.r[v] - alpha * k.q[v]
                 z = _preconditioned(k, o, v, r)
-                k.state.r[v] = r
-                k.state.z[v] = z
+                k.r[v] = r
+                k.z[v] = z
                 rz += r.dot(z)
-        k.state.partial[0, b] = rz
+        k.partial[0, b] = rz
     _precondition_coupled(k, o, False)
     for _ in range(1):
-        if k.state.scalars[DONE] == 0:
+        if k.scalars[DONE] == 0:
             delta = _sum_partials(k, 0)
-            k.state.scalars[DELTA_OLD] = k.state.scalars[DELTA]
-            k.state.scalars[DELTA] = delta
-            k.state.scalars[ITERATION] = k.state.scalars[ITERATION] + 1
-            k.state.scalars[BETA] = delta / k.state.scalars[DELTA_OLD]
-            tol = k.state.parameters[TOLERANCE]
-            if delta <= tol * tol * k.state.scalars[DELTA0] or k.state.scalars[ITERATION] >= k.state.parameters[MAX_ITERATIONS]:
-                k.state.scalars[DONE] = 1
-    for v in range(k.model.counts[0]):
-        if k.state.scalars[DONE] == 0:
-            k.state.p[v] = k.state.z[v] + k.state.scalars[BETA] * k.state.p[v]
+            k.scalars[DELTA_OLD] = k.scalars[DELTA]
+            k.scalars[DELTA] = delta
+            k.scalars[ITERATION] = k.scalars[ITERATION] + 1
+            k.scalars[BETA] = delta / k.scalars[DELTA_OLD]
+            tol = k.parameters[TOLERANCE]
+            if delta <= tol * tol * k.scalars[DELTA0] or k.scalars[ITERATION] >= k.parameters[MAX_ITERATIONS]:
+                k.scalars[DONE] = 1
+    for v in range(k.counts[0]):
+        if k.scalars[DONE] == 0:
+            k.p[v] = k.z[v] + k.scalars[BETA] * k.p[v]
 
 
 @ti.func
 def _end(k: ti.template()):
-    h = k.state.parameters[DT]
+    h = k.parameters[DT]
     for b in range(_blocks(k)):
         rr, bad = 0.0, 0.0
         begin, end = _block_nodes(k, b)
         for v in range(begin, end):
-            vel = k.state.v[v] + k.state.dv[v]
-            if k.model.held[v] != 0:
+            vel = k.v[v] + k.dv[v]
+            if k.held[v] != 0:
                 vel = ti.Vector([0.0, 0.0, 0.0])
             if not (vel.norm_sqr() < 1e300):  # NaN or inf
                 bad += 1.0
-            k.state.v[v] = vel
-            k.state.x[v] = k.state.x[v] + h * vel
-            rr += k.state.r[v].dot(k.state.r[v])
-        k.state.partial[0, b] = rr
-        k.state.partial[1, b] = bad
+            k.v[v] = vel
+            k.x[v] = k.x[v] + h * vel
+            rr += k.r[v].dot(k.r[v])
+        k.partial[0, b] = rr
+        k.partial[1, b] = bad
     for _ in range(1):
-        k.state.scalars[RES2] = _sum_partials(k, 0)
-        k.state.scalars[NONFINITE] = _sum_partials(k, 1)
+        k.scalars[RES2] = _sum_partials(k, 0)
+        k.scalars[NONFINITE] = _sum_partials(k, 1)
 
 
 @ti.func
 def _report(k: ti.template()):
-    return ti.Vector([k.state.scalars[ITERATION], k.state.scalars[RES2], k.state.scalars[RHS2], k.state.scalars[BREAKDOWN],
-                      k.state.scalars[NONFINITE], ti.cast(k.fem.inverted[0], float)])
+    return ti.Vector([k.scalars[ITERATION], k.scalars[RES2], k.scalars[RHS2], k.scalars[BREAKDOWN],
+                      k.scalars[NONFINITE], ti.cast(k.inverted[0], float)])
 
 
 @ti.kernel
@@ -657,7 +653,7 @@ def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> ti.t
         if ti.static(part != "solve"):
             _begin(k, o, tol)
         if ti.static(part != "begin"):
-            while k.state.scalars[DONE] == 0:
+            while k.scalars[DONE] == 0:
                 _iteration(k, o)
             _end(k)
     return _report(k)
@@ -671,5 +667,5 @@ SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (
 def apply_preconditioner(k: STEP, o: ti.template(), r: ti.types.ndarray(), z: ti.types.ndarray()):
     """z = B r alone (tests): the multigrid V-cycle with the matrix of the last step."""
     for _ in range(1):
-        k.state.scalars[DONE] = 0
+        k.scalars[DONE] = 0
     multigrid.apply(k, o, r, z)

@@ -52,12 +52,10 @@ def coarse_grid(points: np.ndarray, target_nodes: int):
         spacing *= 1.05
 
 
-# counts: [coarse nodes]; coefficients: θ, then (ρₖρₖ₋₁, 2ρₖ/δ) per Chebyshev step.
-MULTIGRID = ti.types.argpack(counts=ti.types.ndarray(), nodes=ti.types.ndarray(), weights=ti.types.ndarray(),
-                             fine_offsets=ti.types.ndarray(), fine_entries=ti.types.ndarray(),
-                             coarse_inverse=ti.types.ndarray(), R=ti.types.ndarray(), res=ti.types.ndarray(),
-                             d=ti.types.ndarray(), rc=ti.types.ndarray(), ec=ti.types.ndarray(),
-                             coefficients=ti.types.ndarray())
+# The multigrid's members of a step's argpack (tissue.solver.implicit_euler.STEP): coarse_count
+# [coarse nodes]; coefficients: θ, then (ρₖρₖ₋₁, 2ρₖ/δ) per Chebyshev step.
+MULTIGRID_MEMBERS = ("coarse_count", "nodes", "weights", "fine_offsets", "fine_entries", "coarse_inverse", "nodal_R",
+                     "res", "d", "rc", "ec", "coefficients")
 
 
 def chebyshev_coefficients(lam_max: float, degree: int):
@@ -137,25 +135,24 @@ class Multigrid:
         padded_nodes[:n] = coarse
         padded_weights = np.zeros((capacity, 4), dtype=np_real)
         padded_weights[:n] = weights
-        arrays = dict(counts=ti.ndarray(ti.i32, 1), nodes=ti.ndarray(ti.types.vector(4, ti.i32), capacity),
+        arrays = dict(coarse_count=ti.ndarray(ti.i32, 1), nodes=ti.ndarray(ti.types.vector(4, ti.i32), capacity),
                       weights=ti.ndarray(vec4, capacity), fine_offsets=ti.ndarray(ti.i32, nc + 1),
                       fine_entries=ti.ndarray(ti.i32, max(1, len(entries))),
-                      coarse_inverse=ti.ndarray(mat3, (nc, nc)), R=ti.ndarray(mat3, capacity),
+                      coarse_inverse=ti.ndarray(mat3, (nc, nc)), nodal_R=ti.ndarray(mat3, capacity),
                       res=ti.ndarray(vec3, capacity), d=ti.ndarray(vec3, capacity),
                       rc=ti.ndarray(vec3, nc), ec=ti.ndarray(vec3, nc),
                       coefficients=ti.ndarray(real, 1 + 2 * len(steps)))
-        arrays["counts"].from_numpy(np.array([nc], dtype=np.int32))
+        arrays["coarse_count"].from_numpy(np.array([nc], dtype=np.int32))
         arrays["nodes"].from_numpy(padded_nodes)
         arrays["weights"].from_numpy(padded_weights)
         arrays["fine_offsets"].from_numpy(offsets)
         if len(entries):
             arrays["fine_entries"].from_numpy(entries.astype(np.int32))
         arrays["coarse_inverse"].from_numpy(C.reshape(nc, 3, nc, 3).transpose(0, 2, 1, 3).astype(np_real))
-        arrays["R"].from_numpy(np.tile(np.eye(3, dtype=np_real), (capacity, 1, 1)))
+        arrays["nodal_R"].from_numpy(np.tile(np.eye(3, dtype=np_real), (capacity, 1, 1)))
         arrays["coefficients"].from_numpy(np.array([theta] + [c for step in steps for c in step], dtype=np_real))
         self.A0, self.theta, self.steps = A0, theta, steps
         self.arrays = arrays
-        self.pack = MULTIGRID(**arrays)
         self._io = [ti.ndarray(vec3, capacity) for _ in range(2)]
 
     # ---- standalone launch (tests) -----------------------------------------------------------
@@ -176,71 +173,71 @@ class Multigrid:
 
 @ti.func
 def update_rotations(k: ti.template(), tol):
-    for v in range(k.model.counts[0]):
-        k.multigrid.R[v] = nodal_rotation(k.fem.R, k.model.valence, k.model.incidence, v, tol)
+    for v in range(k.counts[0]):
+        k.nodal_R[v] = nodal_rotation(k.R, k.valence, k.incidence, v, tol)
 
 
 @ti.func
 def _running(k: ti.template()):
-    return k.state.scalars[ie.DONE] == 0
+    return k.scalars[ie.DONE] == 0
 
 
 @ti.func
 def _residual(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
     ie.multiply(k, o, z)
     mass_factor, stiffness_factor = ie.factors(k)
-    for v in range(k.model.counts[0]):  # res = r - A z
+    for v in range(k.counts[0]):  # res = r - A z
         if _running(k):
-            k.multigrid.res[v] = r[v] - ie.operator_row(k, o, v, z, mass_factor, stiffness_factor)
+            k.res[v] = r[v] - ie.operator_row(k, o, v, z, mass_factor, stiffness_factor)
 
 
 @ti.func
 def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template(), from_zero: ti.template()):
     """z += S res (Chebyshev in D⁻¹A); from zero, res = r and z = S r."""
-    for v in range(k.model.counts[0]):
+    for v in range(k.counts[0]):
         if _running(k):
             if ti.static(from_zero):
-                k.multigrid.res[v] = r[v]
+                k.res[v] = r[v]
                 z[v] = ti.Vector([0.0, 0.0, 0.0])
-            d = (k.state.block_inverse[v] @ k.multigrid.res[v]) / k.multigrid.coefficients[0]
-            k.multigrid.d[v] = d
+            d = (k.block_inverse[v] @ k.res[v]) / k.coefficients[0]
+            k.d[v] = d
             z[v] = z[v] + d
     for step in ti.static(range(o.smoothing_degree - 1)):
-        ie.multiply(k, o, k.multigrid.d)
+        ie.multiply(k, o, k.d)
         mass_factor, stiffness_factor = ie.factors(k)
-        for v in range(k.model.counts[0]):
+        for v in range(k.counts[0]):
             if _running(k):
-                k.multigrid.res[v] = k.multigrid.res[v] - ie.operator_row(k, o, v, k.multigrid.d, mass_factor,
+                k.res[v] = k.res[v] - ie.operator_row(k, o, v, k.d, mass_factor,
                                                                           stiffness_factor)
-        for v in range(k.model.counts[0]):
+        for v in range(k.counts[0]):
             if _running(k):
-                d = k.multigrid.coefficients[1 + 2 * step] * k.multigrid.d[v] + k.multigrid.coefficients[2 + 2 * step] * (k.state.block_inverse[v] @ k.multigrid.res[v])
-                k.multigrid.d[v] = d
+                d = k.coefficients[1 + 2 * step] * k.d[v] + k.coefficients[2 + 2 * step] * (k.block_inverse[v] @ k.res[v])
+                k.d[v] = d
                 z[v] = z[v] + d
 
 
 @ti.func
 def _coarse_correction(k: ti.template(), z: ti.template()):
     """z += R P A_c⁻¹ Pᵀ Rᵀ res."""
-    for c in range(k.multigrid.counts[0]):  # restriction: a gather over the fine nodes around c
+    for c in range(k.coarse_count[0]):  # restriction: a gather over the fine nodes around c
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
-            for j in range(k.multigrid.fine_offsets[c], k.multigrid.fine_offsets[c + 1]):
-                v, corner = k.multigrid.fine_entries[j] // 4, k.multigrid.fine_entries[j] % 4
-                s += k.multigrid.weights[v][corner] * (k.multigrid.R[v].transpose() @ k.multigrid.res[v])
-            k.multigrid.rc[c] = s
-    for c in range(k.multigrid.counts[0]):
+            for j in range(k.fine_offsets[c], k.fine_offsets[c + 1]):
+                v, corner = k.fine_entries[j] // 4, k.fine_entries[j] % 4
+                s += k.weights[v][corner] * (k.nodal_R[v].transpose() @ k.res[v])
+            k.rc[c] = s
+    for c in range(k.coarse_count[0]):
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
-            for j in range(k.multigrid.counts[0]):
-                s += k.multigrid.coarse_inverse[c, j] @ k.multigrid.rc[j]
-            k.multigrid.ec[c] = s
-    for v in range(k.model.counts[0]):  # prolongation
+            for j in range(k.coarse_count[0]):
+                s += k.coarse_inverse[c, j] @ k.rc[j]
+            k.ec[c] = s
+    for v in range(k.counts[0]):  # prolongation
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
             for corner in ti.static(range(4)):
-                s += k.multigrid.weights[v][corner] * k.multigrid.ec[k.multigrid.nodes[v][corner]]
-            z[v] = z[v] + k.multigrid.R[v] @ s
+                s += k.weights[v][corner] * k.ec[k.nodes[v][corner]]
+            z[v] = z[v] + k.nodal_R[v] @ s
 
 
 @ti.func

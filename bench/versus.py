@@ -1,0 +1,109 @@
+"""ms per step of this checkout against another commit, measured alternately in one session.
+
+    python -m bench.versus [--other d10f560] [--rounds 3] [--quick]
+
+This machine is shared and its speed drifts by tens of percent within an hour, so two benchmark
+runs at different times cannot be compared. Here both commits step the same meshes (those of
+bench.deformation: the liver at 596-19,409 tetrahedra and the 220,800-tetrahedron beam; --quick:
+the three small livers) in subprocesses that alternate, round after round: per mesh and commit the
+median ms per step (warm-up excluded) of each round, then the median over rounds, and the ratio
+this / other. The other commit is checked out with `git worktree` into a temporary folder. Both use
+bench.deformation's settings (SOFA's liver demo: dt 0.02 s, 25 CG iterations, "large", assembled
+CG, execution auto) and the first measured run of each commit also reports its start-up: the
+seconds to the end of the first step of the first mesh (compilation included).
+Writes bench/results/versus.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import ROOT, machine, print_machine, write_results
+
+# Runs inside a checkout: the API used here is common to the commits compared.
+CHILD = r"""
+import json, sys, time
+start = time.perf_counter()
+from tissue import backend
+backend.init("cpu")
+from bench.common import time_steps
+from bench.deformation import make_solver, meshes, steps_for
+quick = sys.argv[1] == "quick"
+rows = []
+for label, mesh, fixed, gravity, _ in meshes(quick):
+    if mesh.n_tets > 300_000:
+        continue
+    solver = make_solver(mesh, fixed, gravity)
+    solver.step()
+    first = time.perf_counter() - start
+    t = time_steps(solver.step, steps_for(mesh.n_tets))
+    rows.append(dict(mesh=label, tets=mesh.n_tets, ms=t["median_ms"], first_step_s=first))
+    start = time.perf_counter()
+print("RESULT " + json.dumps(rows))
+"""
+
+
+def measure(checkout: Path, quick: bool) -> list[dict]:
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    done = subprocess.run([sys.executable, "-c", CHILD, "quick" if quick else "full"], cwd=checkout, env=env,
+                          capture_output=True, text=True)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if done.returncode != 0 or not lines:
+        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
+    return json.loads(lines[0][len("RESULT "):])
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--other", default="d10f560", help="the commit to compare with (default: d10f560, "
+                        "the last before the compile-once engine)")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="the three small livers only")
+    args = parser.parse_args(argv)
+
+    from tissue import backend
+
+    backend.init("cpu")
+    info = machine()
+    print_machine(info)
+    other = subprocess.run(["git", "rev-parse", "--short", args.other], cwd=ROOT, capture_output=True,
+                           text=True, check=True).stdout.strip()
+    with tempfile.TemporaryDirectory(prefix="tissue-versus-") as tmp:
+        worktree = Path(tmp) / "other"
+        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), other], cwd=ROOT, check=True,
+                       capture_output=True)
+        try:
+            runs = {"this": [], "other": []}
+            for r in range(args.rounds):
+                for name, checkout in (("this", ROOT), ("other", worktree)) if r % 2 == 0 else \
+                        (("other", worktree), ("this", ROOT)):
+                    started = time.perf_counter()
+                    runs[name].append(measure(checkout, args.quick))
+                    print(f"round {r + 1} {name:>5}: {time.perf_counter() - started:5.1f} s  " +
+                          "  ".join(f"{row['tets']}: {row['ms']:.3f}" for row in runs[name][-1]), flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
+    rows = []
+    for i, row in enumerate(runs["this"][0]):
+        this = float(np.median([run[i]["ms"] for run in runs["this"]]))
+        that = float(np.median([run[i]["ms"] for run in runs["other"]]))
+        rows.append(dict(mesh=row["mesh"], tets=row["tets"], this_ms=round(this, 4), other_ms=round(that, 4),
+                         ratio=round(this / that, 3),
+                         this_first_step_s=round(runs["this"][0][i]["first_step_s"], 2),
+                         other_first_step_s=round(runs["other"][0][i]["first_step_s"], 2)))
+        print(f"{row['mesh']:>22}: this {this:8.3f} ms, {other} {that:8.3f} ms, ratio {this / that:5.2f}; "
+              f"first step {rows[-1]['this_first_step_s']:.1f} s vs {rows[-1]['other_first_step_s']:.1f} s")
+    write_results("versus", dict(machine=info, other=other, rounds=args.rounds, quick=args.quick, meshes=rows))
+
+
+if __name__ == "__main__":
+    main()
