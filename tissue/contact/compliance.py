@@ -337,7 +337,7 @@ class WarpedCompliance:
             self._run(FACTOR, diagonal, Q, P, pos)
 
     def correct(self, lam: np.ndarray) -> None:
-        """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's fields."""
+        """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's arrays."""
         jds = self.jds
         if not jds.n_active:
             return
