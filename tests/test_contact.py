@@ -840,6 +840,62 @@ def test_contact_storage_grows_without_compiling(backend):
     assert compiled_kernel_instances() == compiled
 
 
+def compiled_kernels() -> dict:
+    """{(kernel name, instance key): compiled kernel} of the instances Taichi holds compiled now."""
+    import gc
+
+    from taichi.lang.kernel_impl import Kernel
+
+    return {(k.func.__name__, key[1:]): c for k in gc.get_objects() if isinstance(k, Kernel)
+            for key, c in k.compiled_kernels.items()}   # key: (function, instance id, autodiff mode)
+
+
+def test_second_contact_stage_compiles_nothing(backend):
+    """Two contact stages one after the other, on different meshes and obstacles: a block pressed
+    by a sphere onto a plane with a smaller block stacked on it, then blocks of other sizes and
+    cells on a plane, pressed by a capsule. Soft–rigid and soft–soft contacts in both. Once the
+    first has stepped and gone, building and stepping the second compiles no kernel: the contact
+    kernels take their per-body data as ndarrays. Measured with that data as fields (each stage's
+    own SNode trees): 36 kernel instances compiled again, _detect, _delassus and _correct for the
+    new fields, and every other kernel too, since Taichi drops all compiled kernels when a tree
+    (the first stage's) is freed."""
+    import gc
+
+    from tissue import compilation
+    from tissue.contact.obstacles import Capsule, Plane, RigidObstacle, Sphere
+    from tissue.contact.pipeline import Contact, ContactStage
+
+    def run(lower_size, lower_cells, upper_size, upper_cells, probe, radius):
+        """Two blocks stacked on the plane, the probe (centred at the origin) coming down on them."""
+        lower = make_solver(block(lower_size, lower_cells), rayleigh_mass=1.0)
+        upper = make_solver(block(upper_size, upper_cells, z0=lower_size[2] + 1e-3), rayleigh_mass=1.0)
+        top = lower_size[2] + 1e-3 + upper_size[2]
+        probe = RigidObstacle(probe, motion=lambda t: (0.0, 0.0, top + radius - 0.1 * t))
+        stage = ContactStage([lower, upper], [RigidObstacle(Plane()), probe],
+                             Contact(distance=2e-3, delassus="factored"))
+        for _ in range(3):
+            lower.step()
+            upper.step()
+            stage.step()
+        lower.positions(), upper.positions()   # (Taichi compiles its copy kernels on first use)
+        return stage
+
+    def in_contact(stage):
+        c = stage.last.contacts
+        return c.soft.any() and (~c.soft).any() and (c.other[~c.soft] == 1).any()   # soft, plane, probe
+
+    assert in_contact(run((0.1, 0.1, 0.05), (3, 3, 2), (0.05, 0.05, 0.03), (2, 2, 2), Sphere((0, 0, 0), 0.01), 0.01))
+    gc.collect()                                # the first scene is gone, as when a session moves on
+    before, count = compiled_kernels(), compilation.count()
+    second = run((0.12, 0.08, 0.04), (4, 3, 2), (0.06, 0.04, 0.02), (3, 2, 1),
+                 Capsule((-0.02, 0, 0), (0.02, 0, 0), 0.008), 0.008)
+    # Compiled since: a new instance, or one compiled again (Taichi drops every compiled kernel when
+    # an SNode tree is destroyed, as a field owner's is when it is collected).
+    new = sorted((k for k, c in compiled_kernels().items() if before.get(k) is not c), key=str)
+    assert compilation.count() == count, f"the second stage compiled {compilation.count() - count}: {new}"
+    assert in_contact(second)
+
+
 def test_contact_settings_and_stage_validation(damped_block, cantilever):
     from tissue.contact.constraints import Attachment
     from tissue.contact.obstacles import Plane, RigidObstacle

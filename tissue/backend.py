@@ -8,8 +8,6 @@ Nothing initialises Taichi at import time. `init()` reads its arguments, else th
 from __future__ import annotations
 
 import os
-import weakref
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import taichi as ti
@@ -87,33 +85,3 @@ def sync() -> None:
     """Wait for the device: call before reading a clock."""
     ti.sync()
 
-
-@contextmanager
-def fields_of(owner):
-    """Declare `owner`'s fields inside this block: they go into one SNode tree of their own, freed
-    when `owner` is garbage-collected.
-
-    Taichi's LLVM backends hold at most 512 SNode trees per process and never free the implicit
-    `ti.root` ones, so a long session that builds many simulations (the test suite, a parameter
-    sweep) would crash once past that count. No kernel may run inside the block: a launch would
-    finalise the block's fields into the shared root. Keep a field only as long as its owner.
-    """
-    from taichi.lang import impl
-
-    runtime = impl.get_runtime()
-    runtime.materialize()                  # fields others left pending go into their own tree first
-    own = ti.FieldsBuilder()
-    shared, impl._root_fb = impl._root_fb, own
-    try:
-        yield
-    except BaseException:
-        runtime.unfinalized_fields_builder.pop(own, None)   # half-declared: forget them
-        raise
-    finally:
-        impl._root_fb = shared
-    if own.finalized:
-        raise RuntimeError("a kernel ran inside backend.fields_of(): fields were finalised early")
-    if own.empty:
-        runtime.unfinalized_fields_builder.pop(own, None)
-    else:
-        weakref.finalize(owner, own.finalize(raise_warning=False).destroy)

@@ -10,7 +10,7 @@ kernel in Taichi's in-memory cache. The time of the launches themselves is not c
     compilation.seconds(), compilation.count()   totals so far in this process
     start = compilation.snapshot(); ...; compilation.snapshot() - start   the share of a region
 
-Not counted: the SNode trees' own compilation (fields, `backend.fields_of`), and, on CUDA, the
+Not counted: the SNode trees' own compilation (fields), and, on CUDA, the
 driver's loading of the compiled module, which happens on the first launch.
 """
 

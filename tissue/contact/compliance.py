@@ -71,8 +71,8 @@ SERIAL_BELOW = 10_000    # nodes: below, the CPU runs the compliance loops on on
 
 @ti.kernel
 def _nodal_rotations(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
-                     out: ti.template(), tol: float):
-    for v in out:
+                     out: ti.types.ndarray(), tol: float):
+    for v in range(out.shape[0]):
         out[v] = nodal_rotation(Re, valence, incidence, v, tol)
 
 
@@ -101,12 +101,12 @@ ROTATE, ASSEMBLE, FACTOR = 0, 1, 2     # what _delassus computes besides the nod
 
 
 @ti.kernel
-def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(), R: ti.template(),
-              C0: ti.template(), hr: ti.types.ndarray(), U: ti.types.ndarray(), ht: ti.types.ndarray(),
-              jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(), out: ti.types.ndarray(),
-              P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
-              n_touched: ti.i32, h: float, inverse_mass: float, tol: float, mode: ti.template(),
-              serial: ti.template()):
+def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
+              R: ti.types.ndarray(), C0: ti.types.ndarray(), hr: ti.types.ndarray(), U: ti.types.ndarray(),
+              ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(),
+              out: ti.types.ndarray(), P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32,
+              k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
+              mode: ti.template(), serial: ti.template()):
     """One launch (parallel loops; on one thread for small bodies on the CPU): the nodal
     rotations and kernel 1, Hr = H R (a 3×3 block each); then by `mode`
       ASSEMBLE  Q among the touched dofs (Qt), U = Q Hrᵀ there, the rows' translations H T and
@@ -197,10 +197,10 @@ def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti
 
 
 @ti.kernel
-def _correct(R: ti.template(), C0: ti.template(), hr: ti.types.ndarray(), r0: ti.template(), pushed: ti.template(),
-             jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(), x: ti.types.ndarray(),
-             v: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float,
-             inverse_mass: float, serial: ti.template()):
+def _correct(R: ti.types.ndarray(), C0: ti.types.ndarray(), hr: ti.types.ndarray(), r0: ti.types.ndarray(),
+             pushed: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(),
+             x: ti.types.ndarray(), v: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
+             n_touched: ti.i32, h: float, inverse_mass: float, serial: ti.template()):
     """r₀ = (H R)ᵀ λ on the touched dofs and the total impulse p = (H T)ᵀ λ (serial: a fixed
     summation order; p in r₀'s last slot), then per node dx = h (R Q r₀ + p / (c m)) (a gather over
     the touched columns with r₀ ≠ 0, listed in `pushed`), x += dx, v += dx / h."""
@@ -270,11 +270,12 @@ class WarpedCompliance:
         self.inverse_mass = 1.0 / ((1.0 + solver.dt * solver.rayleigh_mass) * fem.model.mass.sum()) \
             if free else 0.0
         self.C0_host = 0.5 * (C0 + C0.T) - self.inverse_mass * np.kron(np.ones((n, n)), np.eye(3))   # Q
-        with backend.fields_of(self):
-            self.C0 = ti.field(dtype=self.real, shape=self.C0_host.shape)
-            self.R = ti.Matrix.field(3, 3, self.real, n)
-            self.r0 = ti.Vector.field(3, self.real, n + 1)     # + the total impulse
-            self.pushed = ti.field(ti.i32, n + 1)                # touched nodes with r₀ ≠ 0, + their count
+        # Ndarrays, not fields: the kernels take them as ndarray parameters, compiled once for
+        # every body (a field per body would compile them again for each).
+        self.C0 = ti.ndarray(self.real, self.C0_host.shape)
+        self.R = ti.ndarray(ti.types.matrix(3, 3, self.real), n)
+        self.r0 = ti.ndarray(ti.types.vector(3, self.real), n + 1)      # + the total impulse
+        self.pushed = ti.ndarray(ti.i32, n + 1)                         # touched nodes with r₀ ≠ 0, + their count
         self.C0.from_numpy(self.C0_host.astype(self._np))
         self._tol = fem.rotation_tolerance
         self.storage = Storage()                              # this step's scratch: see prepare
@@ -336,7 +337,7 @@ class WarpedCompliance:
             self._run(FACTOR, diagonal, Q, P, pos)
 
     def correct(self, lam: np.ndarray) -> None:
-        """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's fields."""
+        """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's arrays."""
         jds = self.jds
         if not jds.n_active:
             return

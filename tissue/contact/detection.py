@@ -239,14 +239,15 @@ def _cell_range(lo, hi, origin, cell, dims):
 
 
 @ti.kernel
-def _detect(xa: ti.types.ndarray(), nodes: ti.template(), weights: ti.template(), prm: ti.template(),
-            prm_offsets: ti.template(), prm_bounds: ti.template(), bounds: ti.template(), poses: ti.types.ndarray(),
-            xb: ti.types.ndarray(), faces: ti.template(), surface: ti.template(), vf_offsets: ti.template(),
-            vf: ti.template(), normals: ti.template(),
-            start: ti.template(), cursor: ti.template(), ids: ti.types.ndarray(), grid_i: ti.template(),
-            grid_f: ti.template(), cell0: float, alarm: float, slot: ti.i32, out: ti.types.ndarray(),
-            va: ti.types.ndarray(), h: float, state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(),
-            copy_state: ti.template(), serial: ti.template()):
+def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types.ndarray(),
+            prm: ti.types.ndarray(), prm_offsets: ti.types.ndarray(), prm_bounds: ti.types.ndarray(),
+            bounds: ti.types.ndarray(), poses: ti.types.ndarray(), xb: ti.types.ndarray(), faces: ti.types.ndarray(),
+            surface: ti.types.ndarray(), vf_offsets: ti.types.ndarray(), vf: ti.types.ndarray(),
+            normals: ti.types.ndarray(), start: ti.types.ndarray(), cursor: ti.types.ndarray(),
+            ids: ti.types.ndarray(), grid_i: ti.types.ndarray(), grid_f: ti.types.ndarray(), cell0: float,
+            alarm: float, slot: ti.i32, out: ti.types.ndarray(), va: ti.types.ndarray(), h: float,
+            state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(), copy_state: ti.template(),
+            serial: ti.template()):
     """The contact candidates of body A's samples, in one launch. out[s, slot] = [gap, normal (3),
     closest point (3), weights on B's triangle (3), triangle id (-1 rigid)]; gap 1e300: none.
 
@@ -396,19 +397,16 @@ def read_state(x: ti.types.ndarray(), v: ti.types.ndarray(), h: float, out: ti.t
 # the detector
 # --------------------------------------------------------------------------------------------
 
-def _field(values: np.ndarray, dtype, fills: list, n: int = 0):
-    """A field (a vector field of n components when n > 0) to hold `values`: declared now, filled
-    by `_fill(fills)` once the owner's fields are all declared (see backend.fields_of)."""
+def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
+    """An ndarray (of n-vectors when n > 0) holding `values` (at least one element).
+
+    The detection data are ndarrays, not fields: `_detect` takes them as ndarray parameters, so it
+    compiles once for every body and scene (a field per body would compile it again for each)."""
     values = np.ascontiguousarray(values)
-    f = ti.Vector.field(n, dtype, max(1, len(values))) if n else ti.field(dtype, max(1, len(values)))
+    a = ti.ndarray(ti.types.vector(n, dtype) if n else dtype, max(1, len(values)))
     if len(values):
-        fills.append((f, values))
-    return f
-
-
-def _fill(fills: list) -> None:
-    for f, values in fills:
-        f.from_numpy(values)
+        a.from_numpy(values)
+    return a
 
 
 class _Surface:
@@ -424,19 +422,16 @@ class _Surface:
         order = np.argsort(corner_node, kind="stable")
         offsets = np.zeros(len(surface) + 1, np.int32)
         np.cumsum(np.bincount(corner_node, minlength=len(surface)), out=offsets[1:])
-        fills = []
-        with backend.fields_of(self):
-            self.nodes, self.weights = _field(nodes, ti.i32, fills, 3), _field(weights.astype(npr), real, fills, 3)
-            self.faces = _field(faces, ti.i32, fills, 3)
-            self.surface = _field(surface, ti.i32, fills)
-            self.vf_offsets = _field(offsets, ti.i32, fills)
-            self.vf = _field((order // 3).astype(np.int32), ti.i32, fills)
-            self.normals = ti.Vector.field(3, real, max(n_nodes, 1))
-            # The grid of this body's triangles (built on the device at each detection).
-            self.start = ti.field(ti.i32, GRID_MAX_CELLS + 1)
-            self.cursor = ti.field(ti.i32, GRID_MAX_CELLS)
-            self.grid_i, self.grid_f = ti.field(ti.i32, 8), ti.field(real, 4)
-        _fill(fills)
+        self.nodes, self.weights = _array(nodes, ti.i32, 3), _array(weights.astype(npr), real, 3)
+        self.faces = _array(faces, ti.i32, 3)
+        self.surface = _array(surface, ti.i32)
+        self.vf_offsets = _array(offsets, ti.i32)
+        self.vf = _array((order // 3).astype(np.int32), ti.i32)
+        self.normals = ti.ndarray(ti.types.vector(3, real), max(n_nodes, 1))
+        # The grid of this body's triangles (built on the device at each detection).
+        self.start = ti.ndarray(ti.i32, GRID_MAX_CELLS + 1)
+        self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
+        self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
         self.out = np.empty((self.n_samples + 1, n_slots, 11), npr)
 
@@ -446,8 +441,8 @@ class Detector:
 
     surfaces: per soft body, its boundary triangles (k, 3) as node ids, outward; sampling: which
     contact points each body's surface carries (see `surface_samples`).
-    The positions passed to `detect` are per body a Taichi vector field (the solver's `x`, read in
-    place) or an (n, 3) numpy array. Each body's detection is one kernel launch (two or more only
+    The positions passed to `detect` are per body a Taichi ndarray of 3-vectors (the solver's `x`,
+    read in place) or an (n, 3) numpy array. Each body's detection is one kernel launch (two or more only
     with three or more soft bodies), writing into a buffer kept between calls.
     """
 
@@ -463,18 +458,15 @@ class Detector:
         counts = [len(p) for p in prims]
         self.has_primitives = sum(counts) > 0
         balls = [o.bounding_balls() for o in self.obstacles]
-        fills = []
-        with backend.fields_of(self):
-            self._prm = ti.field(self.real, (max(1, sum(counts)), 16))
-            self._prm_offsets = _field(np.r_[0, np.cumsum(counts)].astype(np.int32), ti.i32, fills)
-            self._prm_bounds = ti.field(self.real, (max(1, sum(counts)), 4))
-            self._bounds = ti.field(self.real, (max(1, len(balls)), 4))
+        self._prm = ti.ndarray(self.real, (max(1, sum(counts)), 16))
+        self._prm_offsets = _array(np.r_[0, np.cumsum(counts)].astype(np.int32), ti.i32)
+        self._prm_bounds = ti.ndarray(self.real, (max(1, sum(counts)), 4))
+        self._bounds = ti.ndarray(self.real, (max(1, len(balls)), 4))
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
             self._prm_bounds.from_numpy(np.concatenate([b for b, _ in balls]).astype(self._np))
         if balls:
             self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
-        _fill(fills)
         self._moving = [o.motion is not None for o in self.obstacles]
         self._fields = {}
         self._bodies = None
