@@ -32,20 +32,6 @@ ROTATIONS = ("large", "polar", "linear")
 ACCUMULATIONS = ("gather", "atomic", "colouring")
 
 
-def int_field(shape, n: int = 0):
-    """An i32 field (a vector field of n components when n > 0) that leaves the next field 8-byte
-    aligned: an odd number of 4-byte entries is followed by a 4-byte pad field.
-
-    Taichi's gfx backends (Vulkan) pack root fields with no padding and address a 64-bit field that
-    lands at an offset of 4 mod 8 one slot too low, silently overwriting the last entry of the field
-    before it (taichi-dev/taichi#8803): e.g. the last node's `fixed` flag when the mesh has an odd
-    number of nodes."""
-    field = ti.Vector.field(n, ti.i32, shape) if n else ti.field(ti.i32, shape)
-    if (int(np.prod(shape)) * max(n, 1)) % 2:
-        ti.field(ti.i32, ())
-    return field
-
-
 def vertex_incidence(tets: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
     """CSR index vertex -> (4 e + corner) of its incident element corners, sorted by element."""
     corners = np.arange(tets.size, dtype=np.int32)
