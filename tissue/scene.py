@@ -57,6 +57,7 @@ import numpy as np
 from . import backend, compilation
 from .errors import TissueError
 from .options import Options, apply_overrides, require, suggestion, validate
+from .solver.implicit_euler import CGSettings, StepParameters
 from .stats import Stats
 
 __all__ = ["Fixed", "SoftBody", "Solver", "Render", "Scene", "Simulation", "Body", "Drawable", "STAGES",
@@ -174,9 +175,9 @@ class Solver(Options):
     operator: 'assembled' forms Σ R Kₑ Rᵀ in block rows once per step; 'matrix_free' recomputes
     it element by element in every CG iteration, as the paper does."""
 
-    cg_iterations: int = 25
-    cg_tolerance: float = 1e-9
-    preconditioner: Literal["none", "jacobi", "multigrid"] = "none"
+    cg_iterations: int = CGSettings.max_iterations
+    cg_tolerance: float = CGSettings.tolerance
+    preconditioner: Literal["none", "jacobi", "multigrid"] = CGSettings.preconditioner
     rayleigh_mass: float = 0.1          # damping: alpha_M (1/s)
     rayleigh_stiffness: float = 0.1     # damping: alpha_K (s)
     accumulation: Literal["gather", "atomic"] = "gather"
@@ -188,6 +189,13 @@ class Solver(Options):
         require(self.cg_tolerance >= 0, "cg_tolerance", f"must be >= 0, got {self.cg_tolerance}")
         require(self.rayleigh_mass >= 0, "rayleigh_mass", f"must be >= 0, got {self.rayleigh_mass}")
         require(self.rayleigh_stiffness >= 0, "rayleigh_stiffness", f"must be >= 0, got {self.rayleigh_stiffness}")
+
+    def parameters(self, scene: "Scene") -> StepParameters:
+        """The step parameters of the scene's bodies: what a live solver can change."""
+        return StepParameters(dt=scene.dt, gravity=tuple(scene.gravity), rayleigh_mass=self.rayleigh_mass,
+                              rayleigh_stiffness=self.rayleigh_stiffness,
+                              cg=CGSettings(max_iterations=self.cg_iterations, tolerance=self.cg_tolerance,
+                                            preconditioner=self.preconditioner))
 
 
 @dataclass
@@ -401,7 +409,7 @@ class Body:
     def __init__(self, name: str, spec: SoftBody, scene: Scene):
         from .fem import CorotationalFEM, Material
         from .mesh import boundary_faces
-        from .solver import CGSettings, ImplicitEuler
+        from .solver import ImplicitEuler
 
         self.name, self.spec = name, spec
         own = build_mesh(spec, name)
@@ -412,12 +420,8 @@ class Body:
         try:
             material = Material(young=spec.young, poisson=spec.poisson, density=spec.density)
             self.fem = CorotationalFEM(self.mesh, material, rotation=spec.rotation, accumulation=s.accumulation)
-            self.solver = ImplicitEuler(
-                self.fem, scene.dt, gravity=scene.gravity, rayleigh_mass=s.rayleigh_mass,
-                rayleigh_stiffness=s.rayleigh_stiffness,
-                cg=CGSettings(max_iterations=s.cg_iterations, tolerance=s.cg_tolerance,
-                              preconditioner=s.preconditioner),
-                fixed=self.fixed, execution=s.execution, operator=s.operator)
+            self.solver = ImplicitEuler.with_parameters(self.fem, s.parameters(scene), fixed=self.fixed,
+                                                        execution=s.execution, operator=s.operator)
         except TissueError as err:
             raise TissueError(f"{name}: {err}") from None
         self._visual = None

@@ -186,6 +186,13 @@ class ImplicitEuler:
             self.multigrid = Multigrid(self)
         self.model.subscribe(self)
 
+    @classmethod
+    def with_parameters(cls, fem: CorotationalFEM, parameters: StepParameters, **options) -> "ImplicitEuler":
+        """A solver for these step parameters (the scene's `Solver` group gives them)."""
+        p = parameters
+        return cls(fem, p.dt, gravity=p.gravity, rayleigh_mass=p.rayleigh_mass, rayleigh_stiffness=p.rayleigh_stiffness,
+                   cg=p.cg, **options)
+
     # ---- parameters ---------------------------------------------------------------------------
 
     @property
