@@ -139,3 +139,20 @@ def test_python_dash_m_tissue_smoke(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1] == \
         "tissue: error: beam.yung: unknown field; did you mean 'young'?"
+
+
+def test_a_second_run_with_other_settings_compiles_nothing(capsys, tmp_path, backend):
+    """`tissue run` twice in one process, the second on another mesh size, time step, CG cap
+    and friction: every kernel the second needs was compiled by the first (stats.json counts the
+    kernel instances compiled during a run, tissue.compilation)."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    code, _, err = run(capsys, "run", "incline", "--no-render", "--out", str(first), "--arch", "cpu", "--steps", "3")
+    assert code == 0, err
+    code, stdout, err = run(capsys, "run", "incline", "--no-render", "--out", str(second), "--arch", "cpu",
+                            "--steps", "3", "--set", "block.cells=3,5,2", "--set", "dt=0.004",
+                            "--set", "solver.cg_iterations=40", "--set", "contact.friction=0.6")
+    assert code == 0, err
+    assert json.loads((first / "stats.json").read_text())["kernels_compiled"] > 0
+    stats = json.loads((second / "stats.json").read_text())
+    assert stats["bodies"]["block"]["tets"] != 4 * 4 * 2 * 6
+    assert stats["kernels_compiled"] == 0, stdout
