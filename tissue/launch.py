@@ -9,7 +9,9 @@ holds the arrays' addresses, not their contents, so a replay computes on the cur
 the first launch each ndarray is set once more in the context by its host address (as Taichi does
 for a numpy array), because the CPU launcher leaves the context holding allocation handles it has
 already marked as addresses.
-Arguments that are new objects (a re-allocated argpack after growth) record a new context.
+Arguments that are new objects (a re-allocated argpack after growth) record a new context; a
+numpy argument is recorded by its address, so a caller that reuses one buffer, filled in place,
+replays too.
 
 The context belongs to Taichi's internals (`taichi.lang.kernel_impl`, pinned to 1.7 by setup.cfg),
 so replays are used on the CPU only, where the tests exercise them; other archs launch normally.
@@ -17,6 +19,7 @@ so replays are used on the CPU only, where the tests exercise them; other archs 
 
 from __future__ import annotations
 
+import numpy as np
 from taichi.lang import impl, runtime_ops
 from taichi.lang._ndarray import Ndarray
 from taichi.lang.argpack import ArgPack, ArgPackType
@@ -50,7 +53,7 @@ class Replayed:
     def __call__(self, *args):
         if backend.current().arch != "cpu":
             return self.kernel(*args)
-        key = tuple(("pack", id(a)) if isinstance(a, ArgPack) else a for a in args)
+        key = tuple(("array", id(a)) if isinstance(a, (ArgPack, np.ndarray)) else a for a in args)
         hit = self.contexts.get(key)
         if hit is None:
             return self._record(key, args)

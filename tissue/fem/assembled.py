@@ -23,6 +23,7 @@ import scipy.sparse as sp
 import taichi as ti
 
 from .. import backend
+from ..launch import replayed
 from .model import BodyModel, Edit, real_numpy
 
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
@@ -194,6 +195,7 @@ class SymmetricBlocks(_Blocks):
                    diagonal=ti.ndarray(mat3, model.node_capacity), product=ti.ndarray(vec3, model.node_capacity),
                    index=ti.ndarray(ti.types.vector(2, ti.i32), 1), blocks=ti.ndarray(mat3, 1))
         self._pairs: dict[tuple[int, int], int] | None = None
+        self._staging = None        # an edit's rows on the host, reused (see topology_changed)
         self._build()
 
     def _build(self) -> None:
@@ -251,14 +253,22 @@ class SymmetricBlocks(_Blocks):
             self.arrays["gradients"].from_numpy(self._gradients)
             return
         changed = np.unique(np.concatenate([edit.added, edit.moved_to]).astype(np.int64))
-        element_ints = np.full((max(len(changed), 1), 7), -1, dtype=np.int32)
-        element_ints[:len(changed)] = np.column_stack([changed, self._slots[changed]])
-        element_reals = np.zeros((max(len(changed), 1), 12), dtype=real_numpy())
-        element_reals[:len(changed)] = self._gradients[changed].reshape(-1, 12)
         added = np.arange(first_new, len(self._upper))
-        pairs = np.full((max(len(added), 1), 3), -1, dtype=np.int32)
-        pairs[:len(added)] = np.column_stack([added, self._upper[added]])
-        _write_symmetric_rows(self.pack, element_ints, element_reals, pairs, len(self._upper))
+        rows = max(len(changed), len(added), 1)
+        if self._staging is None or len(self._staging[0]) < rows:
+            rows = max(rows, 64, 2 * len(self._staging[0]) if self._staging is not None else 0)
+            self._staging = (np.empty((rows, 7), np.int32), np.empty((rows, 12), real_numpy()),
+                             np.empty((rows, 3), np.int32), np.zeros(1, np.int32))
+        element_ints, element_reals, pairs, count = self._staging
+        element_ints[len(changed):, 0] = -1
+        element_ints[:len(changed), 0] = changed
+        element_ints[:len(changed), 1:] = self._slots[changed]
+        element_reals[:len(changed)] = self._gradients[changed].reshape(-1, 12)
+        pairs[len(added):, 0] = -1
+        pairs[:len(added), 0] = added
+        pairs[:len(added), 1:] = self._upper[added]
+        count[0] = len(self._upper)
+        WRITE_SYMMETRIC_ROWS(self.pack, *self._staging)
 
     @property
     def n_blocks(self) -> int:
@@ -322,7 +332,7 @@ def symmetric_multiply(m: ti.template(), a: ti.template(), src: ti.template()):
 
 @ti.kernel
 def _write_symmetric_rows(a: BLOCKS, element_ints: ti.types.ndarray(), element_reals: ti.types.ndarray(),
-                          pairs: ti.types.ndarray(), count: ti.i32):
+                          pairs: ti.types.ndarray(), count: ti.types.ndarray()):
     """An edit's rows: per element (id, its 6 pair slots | gradients), per new block (slot, row,
     column), and the block count; a row whose id is −1 is padding."""
     ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
@@ -341,5 +351,9 @@ def _write_symmetric_rows(a: BLOCKS, element_ints: ti.types.ndarray(), element_r
     for r in range(pairs.shape[0]):
         if pairs[r, 0] >= 0:
             a.index[pairs[r, 0]] = ti.Vector([pairs[r, 1], pairs[r, 2]])
+    ti.loop_config(serialize=True)
     for _ in range(1):
-        a.block_count[0] = count
+        a.block_count[0] = count[0]
+
+
+WRITE_SYMMETRIC_ROWS = replayed(_write_symmetric_rows)

@@ -33,8 +33,8 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
+from ..launch import replayed
 from ..mesh import TetMesh
-from ..mesh.surface import OUTWARD_FACES
 from ..mesh.tetmesh import signed_volumes
 from .material import Material
 
@@ -82,6 +82,8 @@ class BodyModel:
         self.growths = 0
         self._real = real_numpy()
         self._faces = None
+        self._staging = None        # the edit rows' host buffers, reused (see _flush)
+        self._counts = np.zeros(2, dtype=np.int32)
         self._subscribers: list[weakref.ref] = []
         valence = np.bincount(mesh.tets.reshape(-1), minlength=n)
         self._allocate(max(node_capacity or n, n), max(element_capacity or m, m),
@@ -358,14 +360,15 @@ class BodyModel:
             slot = self._valence[sorted_nodes] + np.arange(len(order)) - first
             self._incidence[sorted_nodes, slot] = codes[order]
             np.add.at(self._valence, nodes, 1)
-        else:
-            for v, code in zip(nodes, codes):
-                row, k = self._incidence[v], self._valence[v] - 1
-                j = int(np.flatnonzero(row[:k + 1] == code)[0])
-                row[j] = row[k]          # the last entry fills the gap
-                row[k] = -1
-                self._valence[v] = k
         touched = np.unique(nodes)
+        if sign < 0:   # the touched nodes' rows without the removed codes, survivors in order
+            rows = self._incidence[touched]
+            gone = np.isin(rows, codes) | (rows < 0)
+            order = np.argsort(gone, axis=1, kind="stable")
+            kept = np.take_along_axis(rows, order, axis=1)
+            kept[np.take_along_axis(gone, order, axis=1)] = -1
+            self._incidence[touched] = kept
+            self._valence[touched] = (~gone).sum(axis=1)
         self._mass[touched[self._valence[touched] == 0]] = 0.0    # no rounding residue
         held = self._held
         held[touched[(self._valence[touched] == 0)]] = DETACHED
@@ -376,20 +379,31 @@ class BodyModel:
     def _flush(self, elements=(), nodes=()) -> None:
         """Write these elements' and nodes' rows, and the counts, to the device in one launch
         (an edit touches a few rows: uploading whole arrays would cost far more)."""
-        real = self._real
         e = np.unique(np.asarray(elements, dtype=np.int64))
         v = np.unique(np.asarray(nodes, dtype=np.int64))
-        element_ints = np.full((max(len(e), 1), 5), -1, dtype=np.int32)
-        element_ints[:len(e)] = np.column_stack([e, self._tets[e]])
-        element_reals = np.zeros((max(len(e), 1), 21), dtype=real)
-        element_reals[:len(e)] = np.column_stack([self._Dm_inv[e].reshape(-1, 9), self._rest_frame[e].reshape(-1, 9),
-                                                  self._elastic[e]])
         slots = self._incidence.shape[1]
-        node_ints = np.full((max(len(v), 1), 3 + slots), -1, dtype=np.int32)
-        node_ints[:len(v)] = np.column_stack([v, self._held[v], self._valence[v], self._incidence[v]])
-        node_reals = np.zeros((max(len(v), 1), 4), dtype=real)
-        node_reals[:len(v)] = np.column_stack([self._rest[v], self._mass[v]])
-        _write_rows(self.pack, element_ints, element_reals, node_ints, node_reals, self.n_nodes, self.n_elements)
+        rows = max(len(e), len(v), 1)
+        staging = self._staging
+        if staging is None or len(staging[0]) < rows or staging[2].shape[1] != 3 + slots:
+            rows = max(rows, 64, 2 * len(staging[0]) if staging is not None else 0)
+            staging = self._staging = (np.empty((rows, 5), np.int32), np.empty((rows, 21), self._real),
+                                       np.empty((rows, 3 + slots), np.int32), np.empty((rows, 4), self._real))
+        element_ints, element_reals, node_ints, node_reals = staging
+        element_ints[len(e):, 0] = -1
+        element_ints[:len(e), 0] = e
+        element_ints[:len(e), 1:] = self._tets[e]
+        element_reals[:len(e), :9] = self._Dm_inv[e].reshape(-1, 9)
+        element_reals[:len(e), 9:18] = self._rest_frame[e].reshape(-1, 9)
+        element_reals[:len(e), 18:] = self._elastic[e]
+        node_ints[len(v):, 0] = -1
+        node_ints[:len(v), 0] = v
+        node_ints[:len(v), 1] = self._held[v]
+        node_ints[:len(v), 2] = self._valence[v]
+        node_ints[:len(v), 3:] = self._incidence[v]
+        node_reals[:len(v), :3] = self._rest[v]
+        node_reals[:len(v), 3] = self._mass[v]
+        self._counts[:] = self.n_nodes, self.n_elements
+        WRITE_ROWS(self.pack, *staging, self._counts)
 
 
 def real_ti():
@@ -398,9 +412,9 @@ def real_ti():
 
 @ti.kernel
 def _write_rows(m: MODEL, element_ints: ti.types.ndarray(), element_reals: ti.types.ndarray(),
-                node_ints: ti.types.ndarray(), node_reals: ti.types.ndarray(), n_nodes: ti.i32, n_elements: ti.i32):
+                node_ints: ti.types.ndarray(), node_reals: ti.types.ndarray(), counts: ti.types.ndarray()):
     """Rows of an edit: per element (id, tets | Dm⁻¹, rest frame, V λ μ), per node (id, held,
-    valence, incidence | rest, mass); a row whose id is −1 is padding."""
+    valence, incidence | rest, mass), a row whose id is −1 being padding; and the counts."""
     ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
     for r in range(element_ints.shape[0]):
         e = element_ints[r, 0]
@@ -423,6 +437,10 @@ def _write_rows(m: MODEL, element_ints: ti.types.ndarray(), element_reals: ti.ty
                 m.incidence[v, k] = node_ints[r, 3 + k]
             m.rest[v] = ti.Vector([node_reals[r, 0], node_reals[r, 1], node_reals[r, 2]])
             m.mass[v] = node_reals[r, 3]
+    ti.loop_config(serialize=True)
     for _ in range(1):
-        m.counts[0] = n_nodes
-        m.counts[1] = n_elements
+        m.counts[0] = counts[0]
+        m.counts[1] = counts[1]
+
+
+WRITE_ROWS = replayed(_write_rows)
