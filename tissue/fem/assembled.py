@@ -323,11 +323,20 @@ def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
 def symmetric_multiply(m: ti.template(), a: ti.template(), src: ti.template()):
     for v in range(m.counts[0]):
         a.product[v] = a.diagonal[v] @ src[v]
+    # Blocks of one row mostly follow each other (sorted when built; an edit appends): their
+    # row's sum is kept in a register and stored once per run of the row.
+    row, row_sum = -1, ti.Vector([0.0, 0.0, 0.0])
     for j in range(a.block_count[0]):
         r, c = a.index[j][0], a.index[j][1]
+        if r != row:
+            if row >= 0:
+                a.product[row] = a.product[row] + row_sum
+            row, row_sum = r, ti.Vector([0.0, 0.0, 0.0])
         B = a.blocks[j]
-        a.product[r] = a.product[r] + B @ src[c]
+        row_sum += B @ src[c]
         a.product[c] = a.product[c] + B.transpose() @ src[r]
+    if row >= 0:
+        a.product[row] = a.product[row] + row_sum
 
 
 @ti.kernel
