@@ -9,9 +9,8 @@ the three small livers) in subprocesses that alternate, round after round: per m
 median ms per step (warm-up excluded) of each round, then the median over rounds, and the ratio
 this / other. The other commit is checked out with `git worktree` into a temporary folder. Both use
 bench.deformation's settings (SOFA's liver demo: dt 0.02 s, 25 CG iterations, "large", assembled
-CG, execution auto) and the first measured run of each commit also reports its start-up: the
-seconds to the end of the first step of the first mesh (compilation included).
-Writes bench/results/versus.json.
+CG, execution auto); start-up is bench/startup.py's (here it depends on what each commit's runs
+left in Taichi's offline cache). Writes bench/results/versus.json.
 """
 
 from __future__ import annotations
@@ -31,8 +30,7 @@ from bench.common import ROOT, machine, print_machine, write_results
 
 # Runs inside a checkout: the API used here is common to the commits compared.
 CHILD = r"""
-import json, sys, time
-start = time.perf_counter()
+import json, sys
 from tissue import backend
 backend.init("cpu")
 from bench.common import time_steps
@@ -43,11 +41,8 @@ for label, mesh, fixed, gravity, _ in meshes(quick):
     if mesh.n_tets > 300_000:
         continue
     solver = make_solver(mesh, fixed, gravity)
-    solver.step()
-    first = time.perf_counter() - start
     t = time_steps(solver.step, steps_for(mesh.n_tets))
-    rows.append(dict(mesh=label, tets=mesh.n_tets, ms=t["median_ms"], first_step_s=first))
-    start = time.perf_counter()
+    rows.append(dict(mesh=label, tets=mesh.n_tets, ms=t["median_ms"]))
 print("RESULT " + json.dumps(rows))
 """
 
@@ -97,11 +92,8 @@ def main(argv=None) -> None:
         this = float(np.median([run[i]["ms"] for run in runs["this"]]))
         that = float(np.median([run[i]["ms"] for run in runs["other"]]))
         rows.append(dict(mesh=row["mesh"], tets=row["tets"], this_ms=round(this, 4), other_ms=round(that, 4),
-                         ratio=round(this / that, 3),
-                         this_first_step_s=round(runs["this"][0][i]["first_step_s"], 2),
-                         other_first_step_s=round(runs["other"][0][i]["first_step_s"], 2)))
-        print(f"{row['mesh']:>22}: this {this:8.3f} ms, {other} {that:8.3f} ms, ratio {this / that:5.2f}; "
-              f"first step {rows[-1]['this_first_step_s']:.1f} s vs {rows[-1]['other_first_step_s']:.1f} s")
+                         ratio=round(this / that, 3)))
+        print(f"{row['mesh']:>22}: this {this:8.3f} ms, {other} {that:8.3f} ms, ratio {this / that:5.2f}")
     write_results("versus", dict(machine=info, other=other, rounds=args.rounds, quick=args.quick, meshes=rows))
 
 

@@ -88,7 +88,6 @@ class BodyModel:
         valence = np.bincount(mesh.tets.reshape(-1), minlength=n)
         self._allocate(max(node_capacity or n, n), max(element_capacity or m, m),
                        max(slots or int(valence.max()) + 4, int(valence.max())))
-        self.rest = self._rest[:0]
         self.add_nodes(mesh.points)
         self.add_elements(mesh.tets, material)
         self.source = mesh.source
@@ -97,7 +96,7 @@ class BodyModel:
 
     def _allocate(self, nodes: int, elements: int, slots: int) -> None:
         old = getattr(self, "_rest", None)
-        n, m = self.n_nodes, self.n_elements
+        real = backend.current().real
 
         def grown(name, shape, dtype, fill=0):
             array = np.full(shape, fill, dtype=dtype)
@@ -118,13 +117,13 @@ class BodyModel:
         self._density = grown("_density", elements, np.float64)
         self.arrays = dict(
             counts=ti.ndarray(ti.i32, 2),
-            rest=ti.ndarray(ti.types.vector(3, real_ti()), nodes),
+            rest=ti.ndarray(ti.types.vector(3, real), nodes),
             held=ti.ndarray(ti.i32, nodes),
-            mass=ti.ndarray(real_ti(), nodes),
+            mass=ti.ndarray(real, nodes),
             tets=ti.ndarray(ti.types.vector(4, ti.i32), elements),
-            Dm_inv=ti.ndarray(ti.types.matrix(3, 3, real_ti()), elements),
-            rest_frame=ti.ndarray(ti.types.matrix(3, 3, real_ti()), elements),
-            elastic=ti.ndarray(ti.types.vector(3, real_ti()), elements),
+            Dm_inv=ti.ndarray(ti.types.matrix(3, 3, real), elements),
+            rest_frame=ti.ndarray(ti.types.matrix(3, 3, real), elements),
+            elastic=ti.ndarray(ti.types.vector(3, real), elements),
             valence=ti.ndarray(ti.i32, nodes),
             incidence=ti.ndarray(ti.i32, (nodes, slots)))
         self.pack = MODEL(**self.arrays)
@@ -143,13 +142,13 @@ class BodyModel:
 
     def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
         """Room for this many more nodes and elements and slots per node, doubling what is short."""
-        need_n, need_m = self.n_nodes + nodes, self.n_elements + elements
-        need_s = max(slots, self._incidence.shape[1])
-        if need_n > self.node_capacity or need_m > self.element_capacity or need_s > self._incidence.shape[1]:
-            self._allocate(max(need_n, 2 * self.node_capacity if need_n > self.node_capacity else self.node_capacity),
-                           max(need_m, 2 * self.element_capacity if need_m > self.element_capacity
-                               else self.element_capacity),
-                           need_s if need_s <= self._incidence.shape[1] else max(need_s, 2 * self._incidence.shape[1]))
+        def grown(need, have):
+            return have if need <= have else max(need, 2 * have)
+
+        have = (self.node_capacity, self.element_capacity, self._incidence.shape[1])
+        want = (grown(self.n_nodes + nodes, have[0]), grown(self.n_elements + elements, have[1]), grown(slots, have[2]))
+        if want != have:
+            self._allocate(*want)
 
     def _upload(self, *names: str) -> None:
         real = self._real
@@ -404,10 +403,6 @@ class BodyModel:
         node_reals[:len(v), 3] = self._mass[v]
         self._counts[:] = self.n_nodes, self.n_elements
         WRITE_ROWS(self.pack, *staging, self._counts)
-
-
-def real_ti():
-    return backend.current().real
 
 
 @ti.kernel
