@@ -38,9 +38,9 @@ RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely
 @ti.kernel
 def _gather(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), rank: ti.i32,
             free: ti.types.ndarray(), cols: ti.types.ndarray(), k: ti.i32, n: ti.i32,
-            out: ti.types.ndarray(), block: ti.types.ndarray()):
+            out: ti.types.ndarray(), block: ti.types.ndarray(), kb: ti.i32):
     """out[a] = row cols[a] of the current C − T Uᵀ (C symmetric: also its column), zero where a
-    dof is not free; block = out at the columns cols (Gᵀ C G, for the host)."""
+    dof is not free; block = out at the columns cols (Gᵀ C G, for the host), if kb = k."""
     for a, j in ti.ndrange(k, n):
         c = cols[a]
         value = 0.0
@@ -49,7 +49,7 @@ def _gather(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(),
             for r in range(rank):
                 value -= T[j, r] * U[c, r]
         out[a, j] = value
-    for a, b in ti.ndrange(k, k):
+    for a, b in ti.ndrange(kb, kb):
         block[a, b] = out[a, cols[b]]
 
 
@@ -257,17 +257,20 @@ class CuttingCompliance:
         C_gg = self._columns(near[g])
         self._add_factor(-np.linalg.inv(D - E.T @ C_gg @ E), L=E, units=gained)
 
-    def _columns(self, dofs: np.ndarray) -> np.ndarray:
-        """Gather the current C's columns at these dofs (into self._rows); returns Gᵀ C G."""
+    def _columns(self, dofs: np.ndarray, block: bool = True) -> np.ndarray | None:
+        """Gather the current C's columns at these dofs (into self._rows); returns Gᵀ C G if
+        `block` (its own small array: rows() may gather thousands of rows)."""
         k = len(dofs)
         if self._rows.shape[0] < k:
             self._rows = ti.ndarray(ti.f64, (max(k, 2 * self._rows.shape[0]), self.capacity))
-            self._block = ti.ndarray(ti.f64, (self._rows.shape[0], self._rows.shape[0]))
+        if block and self._block.shape[0] < k:
+            self._block = ti.ndarray(ti.f64, (max(k, 2 * self._block.shape[0]),) * 2)
         cols = np.zeros(max(k, 1), dtype=np.int32)     # never empty: Taichi takes no empty array
         cols[:k] = dofs
-        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, self._rows, self._block)
+        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, self._rows, self._block,
+                k if block else 0)
         self._gathered = k
-        return self._block.to_numpy()[:k, :k]
+        return self._block.to_numpy()[:k, :k] if block else None
 
     def _add_factor(self, X: np.ndarray, L: np.ndarray | None = None, units: np.ndarray | None = None) -> None:
         """Append U = (the gathered columns) L − I[:, units], T = U X to the factors."""
@@ -297,7 +300,7 @@ class CuttingCompliance:
         """(len(dofs), 3 nodes) these rows of the current C, without forming it."""
         self.update()
         dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
-        self._columns(dofs)
+        self._columns(dofs, block=False)
         return self._rows.to_numpy()[:len(dofs), :self.n_dofs]
 
     def dense(self) -> np.ndarray:
