@@ -81,8 +81,8 @@ def _fold(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), r
           free: ti.types.ndarray(), n: ti.i32):
     """C ← C − T Uᵀ, zero outside the free dofs; the upper triangle mirrored, so C stays exactly
     symmetric (T Uᵀ is, up to rounding)."""
-    for i, j in ti.ndrange(n, n):
-        if j >= i:
+    for i in range(n):                  # a thread per row: the triangle's j ≥ i, no index division
+        for j in range(i, n):
             value = 0.0
             if free[i] != 0 and free[j] != 0:
                 value = C[i, j]
