@@ -187,6 +187,11 @@ class BodyModel:
         return self._Dm_inv[:self.n_elements]
 
     @property
+    def density(self) -> np.ndarray:
+        """(elements,) mass density of each element."""
+        return self._density[:self.n_elements]
+
+    @property
     def volumes(self) -> np.ndarray:
         return self._elastic[:self.n_elements, 0]
 

@@ -1,0 +1,308 @@
+"""The compliance C = A⁻¹ of a body being cut, kept exact by low-rank updates (paper §4.2).
+
+A = (1 + h α_M) M + (h α_K + h²) K₀ is the rest step matrix (as tissue.solver.reference's
+rest_matrix builds it) on the free dofs; the rows and columns of held and detached nodes are zero
+in C, as in rest_compliance. The body's topology edits (BodyModel.remove_elements, add_nodes,
+add_elements) are recorded as the model announces them, with each element's 12×12 block
+Aₑ = (1 + h α_M) Mₑ + (h α_K + h²) Kₑ; `update()` then brings C to the new matrix in up to three
+low-rank steps, each C ← C − T Uᵀ with U = C G (columns of C: a gather) and T = U X, X small and
+solved on the host:
+
+  drop     dofs that stopped being free (a node left without elements): the inverse of A
+           without them is C − C[:, d] C_dd⁻¹ C[d, :] (block-wise inversion read backwards);
+  correct  ΔA = Σ_added Aₑ − Σ_removed Aₑ on the dofs that stay free, written G B Gᵀ: Woodbury
+           in the form that never inverts B (indefinite, often singular):
+           (A + G B Gᵀ)⁻¹ = C − U (I + B Gᵀ U)⁻¹ B Uᵀ;
+  extend   dofs that became free (new nodes in elements): A' = [[A, E], [Eᵀ, D]], whose inverse,
+           by the Schur complement S = D − Eᵀ C E, is C' = C + V S⁻¹ Vᵀ with V = [C E; −I] (C
+           zero-padded to the new dofs).
+
+Eager (fold_rank 0) folds the factors into C after every update, n² work per unit of rank (the
+paper's cost). Lazy keeps them: `rows(dofs)` returns the rows of C − T Uᵀ without forming it (W
+needs only the rows of the constrained nodes), and the factors are folded into C once their rank
+passes `fold_rank`. Float64 only: single precision is unstable for these inversions (paper §4.3).
+"""
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import taichi as ti
+
+from .. import backend
+from ..errors import TissueError
+from ..fem.model import BodyModel
+
+RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely folds midway
+
+
+@ti.kernel
+def _gather(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), rank: ti.i32,
+            free: ti.types.ndarray(), cols: ti.types.ndarray(), k: ti.i32, n: ti.i32,
+            out: ti.types.ndarray(), block: ti.types.ndarray(), kb: ti.i32):
+    """out[a] = row cols[a] of the current C − T Uᵀ (C symmetric: also its column), zero where a
+    dof is not free; block = out at the columns cols (Gᵀ C G, for the host), if kb = k."""
+    for a, j in ti.ndrange(k, n):
+        c = cols[a]
+        value = 0.0
+        if free[c] != 0 and free[j] != 0:
+            value = C[c, j]
+            for r in range(rank):
+                value -= T[j, r] * U[c, r]
+        out[a, j] = value
+    for a, b in ti.ndrange(kb, kb):
+        block[a, b] = out[a, cols[b]]
+
+
+@ti.kernel
+def _factor(rows: ti.types.ndarray(), L: ti.types.ndarray(), X: ti.types.ndarray(),
+            units: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), r0: ti.i32,
+            k: ti.i32, w: ti.i32, n: ti.i32, identity: ti.i32):
+    """A factor pair in columns r0 … r0 + w: U = (C G) L (L = I when `identity`), less 1 at
+    (units[b], b) where units[b] ≥ 0; then T = U X."""
+    for j, b in ti.ndrange(n, w):
+        value = 0.0
+        if identity:
+            value = rows[b, j]
+        else:
+            for a in range(k):
+                value += rows[a, j] * L[a, b]
+        if units[b] == j:
+            value -= 1.0
+        U[j, r0 + b] = value
+    for j, b in ti.ndrange(n, w):
+        value = 0.0
+        for c in range(w):
+            value += U[j, r0 + c] * X[c, b]
+        T[j, r0 + b] = value
+
+
+@ti.kernel
+def _fold(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), rank: ti.i32,
+          free: ti.types.ndarray(), n: ti.i32):
+    """C ← C − T Uᵀ, zero outside the free dofs; the upper triangle mirrored, so C stays exactly
+    symmetric (T Uᵀ is, up to rounding)."""
+    for i in range(n):                  # a thread per row: the triangle's j ≥ i, no index division
+        for j in range(i, n):
+            value = 0.0
+            if free[i] != 0 and free[j] != 0:
+                value = C[i, j]
+                for r in range(rank):
+                    value -= T[i, r] * U[j, r]
+            C[i, j] = value
+            C[j, i] = value
+
+
+def element_blocks(model: BodyModel, ids: np.ndarray, mass_weight: float, stiffness_weight: float) -> np.ndarray:
+    """(k, 12, 12) blocks mass_weight Mₑ + stiffness_weight Kₑ of these elements, from the model's
+    own rest data: Kₑ[a, b] = V (λ g_a g_bᵀ + μ g_b g_aᵀ + μ (g_a · g_b) I), g the shape-function
+    gradients (the rows of Dm⁻¹, and minus their sum), Mₑ lumped ρ V / 4 per node."""
+    Dm_inv = model.Dm_inv[ids]
+    volume, lam, mu = model.elastic[ids].T
+    g = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)          # (k, 4, 3)
+    K = (lam[:, None, None, None, None] * np.einsum("eai,ebj->eaibj", g, g)
+         + mu[:, None, None, None, None] * np.einsum("ebi,eaj->eaibj", g, g)
+         + mu[:, None, None, None, None] * np.einsum("eab,ij->eaibj", np.einsum("eai,ebi->eab", g, g), np.eye(3)))
+    blocks = stiffness_weight * volume[:, None, None] * K.reshape(-1, 12, 12)
+    blocks[:, np.arange(12), np.arange(12)] += mass_weight * (model.density[ids] * volume / 4.0)[:, None]
+    return blocks
+
+
+def assemble(tets: np.ndarray, blocks: np.ndarray, dofs: np.ndarray) -> np.ndarray:
+    """Σ of the element blocks among these sorted dofs, dense; entries off them are dropped."""
+    out = np.zeros((len(dofs), len(dofs)))
+    if len(dofs) == 0 or len(tets) == 0:
+        return out
+    element_dofs = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+    at = np.minimum(np.searchsorted(dofs, element_dofs), len(dofs) - 1)
+    inside = dofs[at] == element_dofs
+    e, a, b = np.nonzero(inside[:, :, None] & inside[:, None, :])
+    np.add.at(out, (at[e, a], at[e, b]), blocks[e, a, b])
+    return out
+
+
+class CuttingCompliance:
+    """C = A⁻¹ of a BodyModel's rest step matrix, on the device, following its topology edits;
+    see the module docstring. `fold_rank` 0 is eager; above, lazy."""
+
+    def __init__(self, model: BodyModel, dt: float, rayleigh_mass: float = 0.0,
+                 rayleigh_stiffness: float = 0.0, fold_rank: int = 0):
+        if backend.current().precision != "f64":
+            raise TissueError("cutting compliance: needs float64 (single precision is unstable for "
+                              "these inversions)")
+        self.model = model
+        self.mass_weight = 1.0 + dt * rayleigh_mass
+        self.stiffness_weight = dt * rayleigh_stiffness + dt * dt
+        self.fold_rank = int(fold_rank)
+        self.rank = 0                   # factor columns in use (lazy)
+        self.folds = 0
+        m = model.n_elements
+        self._count = m                 # the model's elements at its last edit
+        self._tets = np.zeros((model.element_capacity, 4), dtype=np.int64)
+        self._tets[:m] = model.tets
+        self._blocks = np.zeros((model.element_capacity, 12, 12))
+        self._blocks[:m] = element_blocks(model, np.arange(m), self.mass_weight, self.stiffness_weight)
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []     # (tets, ± blocks) since update()
+        self._free = self._free_dofs(3 * model.node_capacity)
+        self._allocate(3 * model.node_capacity, self.fold_rank + RANK_ROOM)
+        free = np.flatnonzero(self._free)
+        A = self._matrix(np.arange(m), free)
+        C = np.zeros((self.capacity, self.capacity))
+        C[np.ix_(free, free)] = scipy.linalg.inv(A)
+        self.C.from_numpy(0.5 * (C + C.T))
+        model.subscribe(self)
+
+    # ---- storage ------------------------------------------------------------------------------
+
+    def _allocate(self, dofs: int, rank: int) -> None:
+        self.capacity = dofs
+        self.C = ti.ndarray(ti.f64, (dofs, dofs))
+        self.free = ti.ndarray(ti.i32, dofs)
+        self.free.from_numpy(self._free.astype(np.int32))
+        self._factors(rank)
+        self._rows = ti.ndarray(ti.f64, (1, dofs))
+        self._block = ti.ndarray(ti.f64, (1, 1))
+
+    def _factors(self, rank: int) -> None:
+        self.T = ti.ndarray(ti.f64, (self.capacity, rank))
+        self.U = ti.ndarray(ti.f64, (self.capacity, rank))
+
+    def _grow(self, dofs: int) -> None:
+        """Room for the model's grown node capacity: the folded C, padded with zeros."""
+        self.fold()
+        old = self.C.to_numpy()
+        self._free = np.concatenate([self._free, np.zeros(dofs - len(self._free), dtype=bool)])
+        self._allocate(dofs, self.T.shape[1])
+        C = np.zeros((dofs, dofs))
+        C[:len(old), :len(old)] = old
+        self.C.from_numpy(C)
+
+    @property
+    def n_dofs(self) -> int:
+        return 3 * self.model.n_nodes
+
+    def _free_dofs(self, capacity: int) -> np.ndarray:
+        free = np.zeros(capacity, dtype=bool)
+        free[:self.n_dofs] = np.repeat(self.model.held == 0, 3)
+        return free
+
+    def _set_free(self, free: np.ndarray) -> None:
+        self._free = free
+        self.free.from_numpy(free.astype(np.int32))
+
+    def _matrix(self, elements: np.ndarray, dofs: np.ndarray) -> np.ndarray:
+        """The current A among these dofs, from these elements' blocks."""
+        return assemble(self._tets[elements], self._blocks[elements], dofs)
+
+    # ---- the model's edits --------------------------------------------------------------------
+
+    def topology_changed(self, edit) -> None:
+        """Record an edit's element blocks (added +, removed −) and keep the mirror of the
+        elements in the model's order (removed slots refilled from the tail, as the model does)."""
+        model = self.model
+        if model.element_capacity > len(self._blocks):
+            grown = np.zeros((model.element_capacity, 12, 12))
+            grown[:len(self._blocks)] = self._blocks
+            self._blocks = grown
+            self._tets = np.concatenate([self._tets, np.zeros((len(grown) - len(self._tets), 4), np.int64)])
+        if len(edit.added):
+            self._tets[edit.added] = model.tets[edit.added]
+            self._blocks[edit.added] = element_blocks(model, edit.added, self.mass_weight, self.stiffness_weight)
+            self._pending.append((self._tets[edit.added].copy(), self._blocks[edit.added].copy()))
+        else:   # a removal: the removed are the refilled slots and the tail that did not move
+            removed = np.concatenate([edit.moved_to, np.setdiff1d(np.arange(model.n_elements, self._count),
+                                                                  edit.moved_from)])
+            self._pending.append((self._tets[removed].copy(), -self._blocks[removed]))
+            self._tets[edit.moved_to] = self._tets[edit.moved_from]
+            self._blocks[edit.moved_to] = self._blocks[edit.moved_from]
+        self._count = model.n_elements
+
+    # ---- the update ---------------------------------------------------------------------------
+
+    def update(self) -> None:
+        """Bring C to the model's current matrix (the edits since the last update, in one go)."""
+        if 3 * self.model.node_capacity > self.capacity:
+            self._grow(3 * self.model.node_capacity)
+        old, new = self._free, self._free_dofs(self.capacity)
+        if not self._pending and np.array_equal(old, new):
+            return
+        tets = np.concatenate([t for t, _ in self._pending]) if self._pending else np.zeros((0, 4), np.int64)
+        blocks = np.concatenate([b for _, b in self._pending]) if self._pending else np.zeros((0, 12, 12))
+        self._pending = []
+        dropped = np.flatnonzero(old & ~new)
+        if len(dropped):
+            C_dd = self._columns(dropped)
+            self._add_factor(np.linalg.inv(C_dd))
+            self._set_free(old & new)
+        kept = np.intersect1d((3 * tets[:, :, None] + np.arange(3)).reshape(-1), np.flatnonzero(old & new))
+        B = assemble(tets, blocks, kept)
+        if np.any(B):
+            C_gg = self._columns(kept)
+            self._add_factor(np.linalg.solve(np.eye(len(kept)) + B @ C_gg, B))
+        gained = np.flatnonzero(new & ~old)
+        if len(gained):
+            self._extend(gained, new)
+        self._set_free(new)
+        if self.rank > self.fold_rank:
+            self.fold()
+
+    def _extend(self, gained: np.ndarray, free: np.ndarray) -> None:
+        """Block-wise inversion for the dofs that became free, by the Schur complement."""
+        nodes = np.unique(gained // 3)
+        codes = self.model.incidence_rows[nodes].reshape(-1)
+        elements = np.unique(codes[codes >= 0] // 4)
+        near = np.intersect1d((3 * self._tets[elements, :, None] + np.arange(3)).reshape(-1), np.flatnonzero(free))
+        A = self._matrix(elements, near)
+        g, a = np.isin(near, gained, invert=True), np.isin(near, gained)
+        E, D = A[np.ix_(g, a)], A[np.ix_(a, a)]
+        C_gg = self._columns(near[g])
+        self._add_factor(-np.linalg.inv(D - E.T @ C_gg @ E), L=E, units=gained)
+
+    def _columns(self, dofs: np.ndarray, block: bool = True) -> np.ndarray | None:
+        """Gather the current C's columns at these dofs (into self._rows); returns Gᵀ C G if
+        `block` (its own small array: rows() may gather thousands of rows)."""
+        k = len(dofs)
+        if self._rows.shape[0] < k:
+            self._rows = ti.ndarray(ti.f64, (max(k, 2 * self._rows.shape[0]), self.capacity))
+        if block and self._block.shape[0] < k:
+            self._block = ti.ndarray(ti.f64, (max(k, 2 * self._block.shape[0]),) * 2)
+        cols = np.zeros(max(k, 1), dtype=np.int32)     # never empty: Taichi takes no empty array
+        cols[:k] = dofs
+        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, self._rows, self._block,
+                k if block else 0)
+        self._gathered = k
+        return self._block.to_numpy()[:k, :k] if block else None
+
+    def _add_factor(self, X: np.ndarray, L: np.ndarray | None = None, units: np.ndarray | None = None) -> None:
+        """Append U = (the gathered columns) L − I[:, units], T = U X to the factors."""
+        k, w = self._gathered, len(X)
+        if self.rank + w > self.T.shape[1]:
+            self.fold()
+            if w > self.T.shape[1]:
+                self._factors(w + self.fold_rank + RANK_ROOM)
+        units = np.full(w, -1, dtype=np.int32) if units is None else units.astype(np.int32)
+        left = np.zeros((max(k, 1), w))
+        if L is not None:
+            left[:k] = L
+        _factor(self._rows, left, np.ascontiguousarray(X),
+                units, self.T, self.U, self.rank, k, w, self.n_dofs, int(L is None))
+        self.rank += w
+
+    def fold(self) -> None:
+        """C ← C − T Uᵀ (zero outside the free dofs); the factors are emptied."""
+        if self.rank:
+            _fold(self.C, self.T, self.U, self.rank, self.free, min(self.n_dofs, self.capacity))   # (before a growth)
+            self.rank = 0
+            self.folds += 1
+
+    # ---- what the rest reads ------------------------------------------------------------------
+
+    def rows(self, dofs) -> np.ndarray:
+        """(len(dofs), 3 nodes) these rows of the current C, without forming it."""
+        self.update()
+        dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
+        self._columns(dofs, block=False)
+        return self._rows.to_numpy()[:len(dofs), :self.n_dofs]
+
+    def dense(self) -> np.ndarray:
+        """The whole current C (3 nodes × 3 nodes), from its rows (lazy factors kept)."""
+        return self.rows(np.arange(self.n_dofs))
