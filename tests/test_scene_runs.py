@@ -81,3 +81,53 @@ def test_scene_steps(name, capsys, tmp_path, backend):
         assert counters["contacts"] > 0 and counters["rows"] >= counters["contacts"]
         assert stats["counters_last"]["gs_residual"] <= stats["scene_settings"]["contact.tolerance"]
         assert counters["penetration"] < 1e-4
+
+
+def test_incline_in_float32_matches_float64(capsys, tmp_path, backend):
+    """The contact scene `incline` (a block sliding on a 25° plane with friction μ = 0.4: tan 25° is
+    18 % above μ, far from the stick/slip threshold) run 10 steps in float32 (a subprocess: the
+    precision is chosen once per process) and in float64 (here). Bound: each step rounds the
+    positions to ε‖x‖∞ and solves for the motion with a relative error of at most κ ε (κ: the
+    condition number of the block's step matrix M(1 + hα) + (hβ + h²)K, computed here with scipy;
+    the contact solve converges to its tolerance 1e-8 in both); implicit Euler does not amplify
+    earlier errors, so after n steps max |x32 - x64| ≤ n ε (‖x‖∞ + κ ‖u‖∞), u the displacement
+    so far. κ = 503; bound 2e-6 m, measured 1e-8 to 5e-8 m (runs differ by the contact solve's
+    order); the block has moved 2 mm, so an error of 0.1 % in the float32 path's contact or
+    friction forces would exceed it."""
+    import os
+    import subprocess
+    import sys
+
+    from scenes.incline import Incline
+    from tissue.fem import Material
+    from tissue.mesh import box
+    from tissue.solver import reference as ref
+
+    steps = 10
+    argv = ["run", "incline", "--no-render", "--arch", "cpu", "--steps", str(steps)]
+    f64, f32 = tmp_path / "f64", tmp_path / "f32"
+    assert main([*argv, "--out", str(f64)]) == 0, capsys.readouterr()
+    env = dict(os.environ, TISSUE_ARCH="cpu", TISSUE_PRECISION="f32")
+    done = subprocess.run([sys.executable, "-m", "tissue", *argv, "--precision", "f32", "--out", str(f32)],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "(f32)" in done.stdout
+    tolerance = Incline().contact.tolerance
+    for folder in (f64, f32):
+        stats = json.loads((folder / "stats.json").read_text())
+        assert stats["counters_last"]["contacts"] > 0
+        assert stats["counters_last"]["gs_residual"] <= tolerance
+
+    _, a = _last_vtu(f64 / "vtu" / "block.pvd")
+    _, b = _last_vtu(f32 / "vtu" / "block.pvd")
+    scene = Incline()
+    body, solver = scene.block, scene.solver
+    A = ref.rest_matrix(box(body.size, body.cells), Material(body.young, body.poisson, body.density),
+                        scene.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
+    kappa = np.linalg.cond(A.toarray())
+    eps = float(np.finfo(np.float32).eps)
+    u = a.point_data["displacement"]
+    bound = steps * eps * (np.abs(a.points).max() + kappa * np.abs(u).max())
+    error = np.abs(a.points - b.points).max()
+    assert 0 < error <= bound, (error, bound, kappa)
+    assert bound < 1e-3 * np.abs(u).max()          # the bound is tight enough to mean something
