@@ -59,19 +59,20 @@ def rel(a, b):
 # --- 4 and 11. one step against the direct solve ------------------------------------------------
 
 # (rotation, accumulation, execution, operator, preconditioner). The default run covers each
-# value of every option once (compiling a solver costs seconds, a polar one ~12 s on this CPU);
-# the slow run adds the full grid for large and polar, and linear.
+# value of every option once, "linear" included (compiling a solver costs seconds, a polar one
+# ~12 s on this CPU); the slow run adds the full grid for large and polar.
 DEFAULT_CONFIGS = [
     ("large", "gather", "serial", "assembled", "none"),
     ("large", "gather", "parallel", "assembled", "none"),
     ("polar", "gather", "serial", "assembled", "none"),
     ("large", "atomic", "serial", "matrix_free", "jacobi"),
     ("large", "gather", "parallel", "assembled", "multigrid"),
+    ("linear", "atomic", "serial", "assembled", "none"),
 ]
 GRID = [(r, a, e, o, p) for p in ("none", "jacobi", "multigrid") for r in ("large", "polar")
         for a in ("gather", "atomic") for e in ("serial", "parallel") for o in ("assembled", "matrix_free")
         if not (p == "multigrid" and o == "matrix_free")]   # multigrid smooths with the assembled rows
-SLOW_CONFIGS = [c for c in GRID if c not in DEFAULT_CONFIGS] + [("linear", "atomic", "serial", "assembled", "none")]
+SLOW_CONFIGS = [c for c in GRID if c not in DEFAULT_CONFIGS]
 
 
 def check_against_direct_solve(solver, config):
@@ -339,8 +340,7 @@ def test_serial_step_split_in_two_launches_matches_one_launch(solver):
     assert np.linalg.norm(runs[1] - runs[0]) <= 1e-12 * np.linalg.norm(runs[0] - x0)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("operator", ["assembled", "matrix_free"])
+@pytest.mark.parametrize("operator", ["assembled", pytest.param("matrix_free", marks=pytest.mark.slow)])
 def test_fresh_parallel_solvers_are_bit_identical(backend, operator):
     """Reference: a second, freshly built FEM and solver (new fields, new kernels), parallel
     execution: the same 10 steps give bit-identical positions (np.array_equal)."""
