@@ -165,6 +165,7 @@ def test_updated_points_render_like_a_fresh_body():
     with Renderer(size=SIZE, bounds=bounds, ground=True) as fresh:
         fresh.add_body("box", moved, BOX_FACES)
         expected = fresh.image().astype(int)
+
     assert np.abs(updated - expected).mean() < 1.0
 
 
@@ -187,6 +188,7 @@ def test_obstacles_and_ground_render(tmp_path):
     with box_renderer(bounds=bounds, ground=True, title="box on a floor") as fresh:
         fresh.add_obstacle("plate", (BOX_POINTS * [2, 2, 0.01] - [0.5, 0.5, 0.2], BOX_FACES))
         expected = fresh.image().astype(int)
+
     def changed(a, b):                  # share of pixels that differ visibly
         return (np.abs(a - b).sum(axis=-1) > 60).mean()
 
