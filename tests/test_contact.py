@@ -602,22 +602,34 @@ def hertz_fit(cells, indentations, young=1e5, poisson=0.3, radius=0.05):
     return d, F, exponent, constant
 
 
-def test_hertz_sphere_on_plane(backend):
-    """F = 4/3 E* √R d^{3/2} on a 5,184-tet hemisphere (pole elements R/36), d/R = 0.5-4 %:
-    measured F/F_Hertz = 1.41, 1.14, 1.31, 1.26 (steps as rings of nodes enter the contact),
-    exponent 1.47, constant 1.28× Hertz's. The contact radius √(R d) spans only 2-4 elements:
-    node-based contact on linear tetrahedra is too stiff at this resolution (the slow test refines)."""
+def test_hertz_sphere_on_plane_converges_with_refinement(backend):
+    """F = 4/3 E* √R d^{3/2} on hemispheres refined three times (3,000, 5,184 and 12,288 tets: pole
+    elements R/25, R/36, R/64), d/R = 0.5-4 %. Linear tetrahedra with node-based contact are too
+    stiff when the contact radius √(R d) spans a few elements, and that excess falls with the
+    element size; it does not fall to zero: Hertz's formula is for half-spaces, and this hemisphere
+    is clamped at its flat face a distance R from the contact. Boussinesq's solution moves the axis
+    at depth R by δ = F (1+ν)(3-2ν)/(2π E R), so clamping it there stiffens the contact by
+    (1 + δ/d)^{3/2} with δ/d = 2(3-2ν)/(3π(1-ν)) √(d/R) = 0.73 √(d/R): 1.08-1.23 over these
+    indentations (1.15 averaged as the constant is), the floor the refined constants approach from
+    above (1.21 at 24k tets, slow test).
+    So: the constant (F over Hertz's, averaged in log over the indentations) decreases at each
+    refinement by more than 0.02 (measured 1.407, 1.276, 1.244) and stays above 1; the exponent of
+    the finest fit is 1.5 within 0.05 (1.48)."""
     radius = 0.05
-    _, _, exponent, constant = hertz_fit(6, radius * np.array([0.005, 0.01, 0.02, 0.04]), radius=radius)
-    assert abs(exponent - 1.5) < 0.12
-    assert 1.0 < constant < 1.4
+    d = radius * np.array([0.005, 0.01, 0.02, 0.04])
+    fits = [hertz_fit(cells, d, radius=radius) for cells in (5, 6, 8)]
+    constants = np.array([constant for *_, constant in fits])
+    assert np.all(np.diff(constants) < -0.02), constants
+    assert constants[-1] > 1.0
+    assert abs(fits[-1][2] - 1.5) < 0.05
 
 
 @pytest.mark.slow
 def test_hertz_sphere_on_plane_refined(backend):
     """The same on 24,000 tets (pole elements R/100): measured exponent 1.49 (d/R 0.25-4 %),
-    constant 1.21× Hertz's. Refinement history of the constant: 1.32 (5k tets), 1.23 (12k), 1.21
-    (24k): it converges slowly from the stiff side, as linear tetrahedra do."""
+    constant 1.21× Hertz's. Refinement history of the constant: 1.41 (3k tets), 1.28 (5k), 1.24
+    (12k), 1.21 (24k): it converges from the stiff side toward the finite-body floor (~1.15,
+    the clamp at depth R; see test_hertz_sphere_on_plane_converges_with_refinement)."""
     radius = 0.05
     _, _, exponent, constant = hertz_fit(10, radius * np.array([0.0025, 0.005, 0.01, 0.02, 0.04]), radius=radius)
     assert abs(exponent - 1.5) < 0.05

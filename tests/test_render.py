@@ -165,6 +165,7 @@ def test_updated_points_render_like_a_fresh_body():
     with Renderer(size=SIZE, bounds=bounds, ground=True) as fresh:
         fresh.add_body("box", moved, BOX_FACES)
         expected = fresh.image().astype(int)
+
     assert np.abs(updated - expected).mean() < 1.0
 
 
@@ -172,15 +173,27 @@ def test_updated_points_render_like_a_fresh_body():
 def test_obstacles_and_ground_render(tmp_path):
     import pyvista as pv
 
-    with box_renderer(ground=True, title="box on a floor") as r:
+    bounds = (-1, 2, -1, 2, -1, 2)      # the same camera for both renders below
+    with box_renderer(bounds=bounds, ground=True, title="box on a floor") as r:
         r.add_obstacle("ball", pv.Sphere(radius=0.3, center=(0.5, 0.5, 1.5)))
         r.add_obstacle("plate", (BOX_POINTS * [2, 2, 0.01] - [0.5, 0.5, 0.2], BOX_FACES))
         first = r.image()
         r.update_obstacle("ball", transform=np.array([[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0],
                                                       [0, 0, 0, 1.0]]))
-        assert np.abs(r.image().astype(int) - first.astype(int)).sum() > 0
+        with_ball = r.image().astype(int)
+        assert np.abs(with_ball - first.astype(int)).sum() > 0
         r.remove("ball")
-        r.image()
+        removed = r.image().astype(int)
+    # After `remove`, the picture is the one drawn without the ball (and not the one with it).
+    with box_renderer(bounds=bounds, ground=True, title="box on a floor") as fresh:
+        fresh.add_obstacle("plate", (BOX_POINTS * [2, 2, 0.01] - [0.5, 0.5, 0.2], BOX_FACES))
+        expected = fresh.image().astype(int)
+
+    def changed(a, b):                  # share of pixels that differ visibly
+        return (np.abs(a - b).sum(axis=-1) > 60).mean()
+
+    assert changed(removed, expected) < 0.001
+    assert changed(with_ball, expected) > 0.005      # the ball covers ~1 % of the picture
 
 
 @renders

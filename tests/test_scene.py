@@ -121,9 +121,20 @@ def test_a_scene_without_bodies_is_refused():
 def test_flatten_lists_every_leaf_by_dotted_name():
     flat = flatten(SmallBeam())
     assert flat["beam.young"] == 1e6 and flat["render.camera"] == "iso" and flat["dt"] == 0.01
-    # Every flattened name can be set back.
-    apply_overrides(SmallBeam(), [f"{k}={v if not isinstance(v, list) else ','.join(map(str, v))}"
-                                  for k, v in flat.items() if v is not None and v != []])
+    # Every flattened name can be set back, and setting each to its value changes nothing: the
+    # round trip, on a scene whose every value is first changed to a different one (so that a
+    # value parsed wrongly, dropped or set on another field shows) and on the shipped scenes.
+    def assignments(flat):
+        return [f"{k}={v if not isinstance(v, list) else ','.join(map(str, v))}"
+                for k, v in flat.items() if v is not None and v != []]
+
+    changed = SmallBeam().with_overrides(["beam.young=2.5e5", "dt=0.02", "render.camera=top",
+                                          "beam.cells=3,2,1", "solver.cg_iterations=7"])
+    for scene in [SmallBeam(), changed, *(cls() for cls in scenes.catalogue().values())]:
+        flat = flatten(scene)
+        back = flatten(apply_overrides(type(scene)(), assignments(flat)))
+        assert back == flat, type(scene).__name__
+    assert flatten(changed)["beam.young"] == 2.5e5 and flatten(changed)["beam.cells"] == [3, 2, 1]
 
 
 # ---- held nodes and poses ------------------------------------------------------------------------

@@ -59,19 +59,20 @@ def rel(a, b):
 # --- 4 and 11. one step against the direct solve ------------------------------------------------
 
 # (rotation, accumulation, execution, operator, preconditioner). The default run covers each
-# value of every option once (compiling a solver costs seconds, a polar one ~12 s on this CPU);
-# the slow run adds the full grid for large and polar, and linear.
+# value of every option once, "linear" included (compiling a solver costs seconds, a polar one
+# ~12 s on this CPU); the slow run adds the full grid for large and polar.
 DEFAULT_CONFIGS = [
     ("large", "gather", "serial", "assembled", "none"),
     ("large", "gather", "parallel", "assembled", "none"),
     ("polar", "gather", "serial", "assembled", "none"),
     ("large", "atomic", "serial", "matrix_free", "jacobi"),
     ("large", "gather", "parallel", "assembled", "multigrid"),
+    ("linear", "atomic", "serial", "assembled", "none"),
 ]
 GRID = [(r, a, e, o, p) for p in ("none", "jacobi", "multigrid") for r in ("large", "polar")
         for a in ("gather", "atomic") for e in ("serial", "parallel") for o in ("assembled", "matrix_free")
         if not (p == "multigrid" and o == "matrix_free")]   # multigrid smooths with the assembled rows
-SLOW_CONFIGS = [c for c in GRID if c not in DEFAULT_CONFIGS] + [("linear", "atomic", "serial", "assembled", "none")]
+SLOW_CONFIGS = [c for c in GRID if c not in DEFAULT_CONFIGS]
 
 
 def check_against_direct_solve(solver, config):
@@ -339,8 +340,7 @@ def test_serial_step_split_in_two_launches_matches_one_launch(solver):
     assert np.linalg.norm(runs[1] - runs[0]) <= 1e-12 * np.linalg.norm(runs[0] - x0)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("operator", ["assembled", "matrix_free"])
+@pytest.mark.parametrize("operator", ["assembled", pytest.param("matrix_free", marks=pytest.mark.slow)])
 def test_fresh_parallel_solvers_are_bit_identical(backend, operator):
     """Reference: a second, freshly built FEM and solver (new fields, new kernels), parallel
     execution: the same 10 steps give bit-identical positions (np.array_equal)."""
@@ -408,6 +408,60 @@ def test_other_arch_matches_cpu(solver, arch, rotation, preconditioner, tmp_path
     x_gpu = run_on_arch(arch, "parallel", tmp_path, rotation, preconditioner)
     x_cpu, x0 = cpu_three_steps(solver, rotation, preconditioner)
     assert np.linalg.norm(x_gpu - x_cpu) <= 1e-9 * np.linalg.norm(x_cpu - x0)
+
+
+# --- 10. float32 ------------------------------------------------------------------------------
+
+F32_CG_TOLERANCE = 1e-6     # ~8 float32 epsilons: CG in float32 reaches it (48 iterations), not much below
+
+
+def f32_step():
+    """Run by a subprocess (precision is chosen once per process): one step of the standard
+    problem in float32, CG to F32_CG_TOLERANCE; positions and velocities saved to argv[1]."""
+    from tissue import backend
+    backend.init(arch="cpu", precision="f32")
+    sim = make_solver("large", "gather", "serial", cg=CGSettings(TIGHT.max_iterations, F32_CG_TOLERANCE))
+    x0, v0 = standard_state(1)
+    sim.set_state(x0, v0)
+    sim.step()
+    assert sim.stats.counters["cg_residual"] <= F32_CG_TOLERANCE
+    np.save(sys.argv[1], np.stack([sim.positions(), sim.velocities()]))
+
+
+def test_float32_step_matches_float64(solver, tmp_path):
+    """Reference: the same implicit-Euler step in float64 in this process (which matches the direct
+    solve to 1e-8). Bound, from float32's epsilon and the step's conditioning: a linear solve's
+    forward error is at most κ(A) times (the relative residual + the relative error of its data).
+    κ(A) of M(1 + hα) + (hβ + h²)K on the free nodes is computed here (85); the data (elastic
+    forces K(Rᵀx - X)) are formed in float32 from positions rounded to ε‖x‖, which the subtraction
+    of X amplifies by ‖x‖/‖x - QX‖ (2 cm random displacements of a 1 m beam: 20 here). So
+    ‖v32 - v64‖/‖v64‖ ≤ κ (tol + ε ‖x‖/‖x - QX‖) ≈ 3e-4; the step's displacement adds the rounding of
+    the positions themselves, ε ‖x‖/‖Δx‖ (~9e-6). Measured: 5e-6 and 5e-6 (round-off errors do not
+    all line up as the bound assumes); a float32 path that lost a term or its precision (say a
+    float64 constant truncated, a force in half precision) is off by more than the bound."""
+    out = tmp_path / "f32.npy"
+    code = f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from test_solver import f32_step; f32_step()"
+    env = dict(os.environ, TISSUE_ARCH="cpu", TISSUE_PRECISION="f32")
+    done = subprocess.run([sys.executable, "-c", code, str(out)], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    x32, v32 = np.load(out)
+    x0, v0 = standard_state(1)
+    sim = solver("large", "gather", "serial", "assembled", "none")
+    sim.set_state(x0, v0)
+    sim.step()
+    x64, v64 = sim.positions(), sim.velocities()
+
+    eps = float(np.finfo(np.float32).eps)
+    system = ref.linearise(BEAM, MATERIAL, x0, v0, rotation="large", **STEP)
+    free = ref.free_dofs(BEAM.n_points, FIXED)
+    kappa = np.linalg.cond(system.A[free][:, free].toarray())
+    Q = Rotation.from_rotvec([0.5, 1.2, -0.7]).as_matrix()
+    cancellation = np.linalg.norm(x0) / np.linalg.norm(x0 - BEAM.points @ Q.T)
+    velocity_bound = kappa * (F32_CG_TOLERANCE + eps * cancellation)
+    assert 50 < kappa < 200 and velocity_bound < 1e-3       # the problem is what the bound assumes
+    assert rel(v32, v64) <= velocity_bound
+    assert rel(x32 - x0, x64 - x0) <= velocity_bound + eps * np.linalg.norm(x0) / np.linalg.norm(x64 - x0)
+    assert rel(v32, v64) > 1e-8       # it did run in float32 (float64 agrees to ~1e-12)
 
 
 def test_dropped_solvers_free_their_fields(backend):
