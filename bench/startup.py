@@ -78,7 +78,7 @@ def edit_timing(repeats: int = 50) -> dict:
     from tissue.solver import ImplicitEuler
 
     mesh = box(size=(0.11, 0.1, 0.06), cells=(11, 10, 6))
-    solver = ImplicitEuler(CorotationalFEM(mesh, Material(3e3, 0.3, 1000.0)), 0.02, fixed=[0])
+    solver = ImplicitEuler(CorotationalFEM(mesh, Material(3e3, 0.3, 1000.0)), 0.02, gravity=(0.0, 0.0, 0.0))
     solver.step()
     solver.positions()
     model, rng = solver.model, np.random.default_rng(0)
