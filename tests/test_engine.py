@@ -168,11 +168,18 @@ def test_model_edits_keep_its_invariants(backend):
     mesh = box(size=(0.3, 0.3, 0.3), cells=(3, 3, 3))
     model = BodyModel(mesh, MATERIAL, node_capacity=mesh.n_points, element_capacity=mesh.n_tets)
     model.set_held([0, 1])
+    model.boundary_faces()                            # from here on, kept by the edits
     rng = np.random.default_rng(1)
+    removed = []
     for _ in range(5):
-        model.remove_elements(rng.choice(model.n_elements, 7, replace=False))
-    model.add_elements(mesh.tets[:40])                # grows the element storage past its capacity
-    assert model.growths >= 1 and model.n_elements == mesh.n_tets - 35 + 40
+        ids = rng.choice(model.n_elements, 7, replace=False)
+        removed.append(model.tets[ids].copy())
+        model.remove_elements(ids)
+    removed = np.concatenate(removed)
+    model.add_elements(removed[:15])                  # some come back
+    centres = model.add_nodes(model.points[removed[15:25]].mean(axis=1))
+    model.add_elements(split_into_four(removed[15:25], centres))   # past the element capacity
+    assert model.growths >= 1 and model.n_elements == mesh.n_tets - 35 + 15 + 40
     tets = model.tets
     offsets, corners = model.incidence_csr()
     for v in range(model.n_nodes):

@@ -35,6 +35,7 @@ from .. import backend
 from ..errors import TissueError
 from ..launch import replayed
 from ..mesh import TetMesh
+from ..mesh.surface import OUTWARD_FACES
 from ..mesh.tetmesh import signed_volumes
 from .material import Material
 
@@ -225,12 +226,27 @@ class BodyModel:
         return offsets, rows[np.arange(rows.shape[1]) < valence[:, None]]
 
     def boundary_faces(self) -> np.ndarray:
-        """(k, 3) outward boundary triangles of the elements in use (kept up to date by the edits)."""
+        """(k, 3) outward boundary triangles of the elements in use. Found once from the elements,
+        then kept by the edits face by face (a cut's new faces become surface, its removed ones
+        stop being so)."""
         if self._faces is None:
             from ..mesh import boundary_faces
 
-            self._faces = boundary_faces(self.tets)
-        return self._faces
+            self._faces = {tuple(sorted(f)): tuple(f) for f in boundary_faces(self.tets).tolist()}
+        return np.array(list(self._faces.values()), dtype=np.int64).reshape(-1, 3)
+
+    def _toggle_faces(self, tets: np.ndarray, added: bool) -> None:
+        """A face belongs to the boundary when one element has it. An added element's face that
+        was boundary is now inside, else it is new surface; a removed element's face that was
+        boundary is gone, else its neighbour's side (the reversed face) is now surface."""
+        if self._faces is None:
+            return
+        for face in tets[:, OUTWARD_FACES].reshape(-1, 3).tolist():
+            key = tuple(sorted(face))
+            if key in self._faces:
+                del self._faces[key]
+            else:
+                self._faces[key] = tuple(face) if added else (face[0], face[2], face[1])
 
     # ---- material -----------------------------------------------------------------------------
 
@@ -288,7 +304,6 @@ class BodyModel:
         self._valence[ids] = 0
         self._incidence[ids] = -1
         self.n_nodes += len(points)
-        self._faces = None
         self._flush(nodes=ids)
         return ids
 
@@ -318,6 +333,7 @@ class BodyModel:
         self._elastic[ids] = np.column_stack([volumes, np.full(len(tets), lam), np.full(len(tets), mu)])
         self._density[ids] = material.density
         self.n_elements += len(tets)
+        self._toggle_faces(tets, added=True)
         self._flush(elements=ids, nodes=self._link(ids, +1))
         self._notify(Edit(added=ids))
         return ids
@@ -329,6 +345,7 @@ class BodyModel:
         m = self.n_elements
         if len(ids) and (ids[0] < 0 or ids[-1] >= m):
             raise TissueError(f"remove_elements: ids out of range [0, {m}): {ids[(ids < 0) | (ids >= m)][:10].tolist()}")
+        self._toggle_faces(self._tets[ids], added=False)
         touched = [self._link(ids, -1)]
         keep = np.ones(m, dtype=bool)
         keep[ids] = False
@@ -377,7 +394,6 @@ class BodyModel:
         held = self._held
         held[touched[(self._valence[touched] == 0)]] = DETACHED
         held[touched[(self._valence[touched] > 0) & (held[touched] == DETACHED)]] = 0
-        self._faces = None
         return touched
 
     def _flush(self, elements=(), nodes=()) -> None:
