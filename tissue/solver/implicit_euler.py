@@ -392,11 +392,11 @@ class ImplicitEuler:
 
 def _unused(members) -> dict:
     """Arrays for the members a scheme does not read (one entry each)."""
-    return {name: _ONE() for name in members}
+    return {name: _one_entry() for name in members}
 
 
 @functools.cache
-def _ONE():
+def _one_entry():
     return ti.ndarray(ti.i32, 1)
 
 
