@@ -206,3 +206,40 @@ def test_edits_refuse_bad_elements(backend):
     with pytest.raises(TissueError, match="out of range"):
         model.remove_elements([mesh.n_tets])
     assert model.n_elements == mesh.n_tets
+
+
+def test_live_simulation_parameters_step_as_a_fresh_simulation(backend):
+    """Simulation.set_parameters (dt, the CG cap, damping, gravity) on a live beam scene: the next
+    step equals that of a Simulation built with those settings from the same state (1e-12), the
+    clock advances by the new dt, nothing compiles; with contact, dt is refused by name."""
+    import scenes
+    from tissue.scene import Simulation
+
+    scene = scenes.load("beam")().with_overrides(["beam.cells=6,1,1"])
+    live = Simulation(scene)
+    live.run(2)
+    x, v = live.bodies["beam"].positions(), live.bodies["beam"].velocities()
+    start = compilation.count()
+    changes = dict(dt=0.004, cg_iterations=7, rayleigh_mass=0.3, gravity=(0.0, -1.0, -9.81))
+    live.set_parameters(**changes)
+    live.step()
+    assert compilation.count() == start
+    assert live.time == pytest.approx(2 * 0.01 + 0.004, abs=1e-15)
+    fresh = Simulation(scene.with_overrides(["dt=0.004", "solver.cg_iterations=7", "solver.rayleigh_mass=0.3",
+                                             "gravity=0,-1,-9.81"]))
+    fresh.bodies["beam"].solver.set_state(x, v)
+    fresh.step()
+    assert live.stats.counters["cg_iterations"] == 7
+    np.testing.assert_allclose(live.bodies["beam"].positions(), fresh.bodies["beam"].positions(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(live.bodies["beam"].velocities(), fresh.bodies["beam"].velocities(), rtol=0,
+                               atol=1e-12)
+    with pytest.raises(TissueError, match="cg_iteration: not a parameter"):
+        live.set_parameters(cg_iteration=3)
+    with pytest.raises(TissueError, match="dt"):
+        live.set_parameters(dt=-1.0)
+
+    contact = Simulation(scenes.load("incline")().with_overrides(["block.cells=2,2,1"]))
+    with pytest.raises(TissueError, match="dt: the contact stage"):
+        contact.set_parameters(dt=0.02)
+    contact.set_parameters(cg_iterations=30)
+    assert contact.bodies["block"].solver.cg.max_iterations == 30

@@ -47,7 +47,7 @@ How a later layer plugs in (contact, attachments, haptics, cutting)
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Literal, Protocol
@@ -595,7 +595,32 @@ class Simulation:
                     self.stats.count(**counters)
         self.compile_seconds_by_step.append(compilation.seconds() - compiled_before)
         self.step_count += 1
-        self.time = self.step_count * self.scene.dt
+        self.time += self.scene.dt
+
+    def set_parameters(self, **changes) -> None:
+        """Change the step's parameters on the live simulation, from the next step on, compiling
+        nothing: `dt`, `gravity`, and the `solver` group's `cg_iterations`, `cg_tolerance`,
+        `rayleigh_mass`, `rayleigh_stiffness` (e.g. `sim.set_parameters(dt=0.01, cg_iterations=50)`).
+        The contact stage's compliance is built for one step matrix, so with contact dt and
+        damping stay as built."""
+        scene_fields, solver_fields = {"dt", "gravity"}, {"cg_iterations", "cg_tolerance", "rayleigh_mass",
+                                                          "rayleigh_stiffness"}
+        unknown = sorted(set(changes) - scene_fields - solver_fields)
+        if unknown:
+            raise TissueError(f"{unknown[0]}: not a parameter a live simulation can change; "
+                              f"expected {', '.join(sorted(scene_fields | solver_fields))}")
+        solver = replace(self.scene.solver, **{k: v for k, v in changes.items() if k in solver_fields})
+        scene = validate(replace(self.scene, solver=solver, **{k: v for k, v in changes.items() if k in scene_fields}))
+        matrix_changes = [k for k in ("dt", "rayleigh_mass", "rayleigh_stiffness") if k in changes]
+        if matrix_changes and any(stage.name != "free_motion" for stage in self.stages):
+            raise TissueError(f"{matrix_changes[0]}: the contact stage's compliance is built for the step "
+                              f"matrix at dt={self.scene.dt}; build a new Simulation to change it")
+        parameters = solver.parameters(scene)
+        for body in self.bodies.values():
+            body.solver.set_parameters(dt=parameters.dt, gravity=parameters.gravity, cg=parameters.cg,
+                                       rayleigh_mass=parameters.rayleigh_mass,
+                                       rayleigh_stiffness=parameters.rayleigh_stiffness)
+        self.scene = scene
 
     def run(self, steps: int | None = None, progress: Callable[[int, int], None] | None = None,
             callback: Callable[["Simulation"], None] | None = None) -> None:
