@@ -35,6 +35,17 @@ from ..fem.model import BodyModel
 RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely folds midway
 
 
+@ti.func
+def _entry(C: ti.template(), T: ti.template(), U: ti.template(), rank, free: ti.template(), i, j):
+    """Entry (i, j) of C − T Uᵀ, zero unless both dofs are free."""
+    value = 0.0
+    if free[i] != 0 and free[j] != 0:
+        value = C[i, j]
+        for r in range(rank):
+            value -= T[i, r] * U[j, r]
+    return value
+
+
 @ti.kernel
 def _gather(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), rank: ti.i32,
             free: ti.types.ndarray(), cols: ti.types.ndarray(), k: ti.i32, n: ti.i32,
@@ -42,13 +53,7 @@ def _gather(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(),
     """out[a] = row cols[a] of the current C − T Uᵀ (C symmetric: also its column), zero where a
     dof is not free; block = out at the columns cols (Gᵀ C G, for the host), if kb = k."""
     for a, j in ti.ndrange(k, n):
-        c = cols[a]
-        value = 0.0
-        if free[c] != 0 and free[j] != 0:
-            value = C[c, j]
-            for r in range(rank):
-                value -= T[j, r] * U[c, r]
-        out[a, j] = value
+        out[a, j] = _entry(C, T, U, rank, free, j, cols[a])
     for a, b in ti.ndrange(kb, kb):
         block[a, b] = out[a, cols[b]]
 
@@ -83,11 +88,7 @@ def _fold(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), r
     symmetric (T Uᵀ is, up to rounding)."""
     for i in range(n):                  # a thread per row: the triangle's j ≥ i, no index division
         for j in range(i, n):
-            value = 0.0
-            if free[i] != 0 and free[j] != 0:
-                value = C[i, j]
-                for r in range(rank):
-                    value -= T[i, r] * U[j, r]
+            value = _entry(C, T, U, rank, free, i, j)
             C[i, j] = value
             C[j, i] = value
 
