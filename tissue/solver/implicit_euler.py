@@ -10,8 +10,13 @@ element in every iteration as the paper does ("matrix_free", tissue.fem.corotati
 Launches are what cost on small meshes (tens of µs each from Python), so a whole step runs in very
 few kernels: "serial" runs the whole step, CG loop included, in one single-threaded kernel (best
 for the paper's real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each
-iteration five parallel loops that exit early once converged. Dot products are blocked partial sums added in a
-fixed order, so results are bit-identical run to run.
+iteration five parallel loops that exit early once converged. Dot products are blocked partial
+sums added in a fixed order, so results are bit-identical run to run.
+
+The kernels are module-level and take one flat argpack (STEP) of the model's arrays
+(tissue.fem.model), the FEM's work, this solver's state and the step parameters (an array read at
+every launch), plus a `Scheme` of the few compile-time choices: one compilation per scheme serves
+every body, mesh size and parameter value.
 """
 
 import functools
