@@ -617,9 +617,7 @@ class Simulation:
                               f"matrix at dt={self.scene.dt}; build a new Simulation to change it")
         parameters = solver.parameters(scene)
         for body in self.bodies.values():
-            body.solver.set_parameters(dt=parameters.dt, gravity=parameters.gravity, cg=parameters.cg,
-                                       rayleigh_mass=parameters.rayleigh_mass,
-                                       rayleigh_stiffness=parameters.rayleigh_stiffness)
+            body.solver.set_parameters(**vars(parameters))
         self.scene = scene
 
     def run(self, steps: int | None = None, progress: Callable[[int, int], None] | None = None,

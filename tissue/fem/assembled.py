@@ -194,7 +194,6 @@ class SymmetricBlocks(_Blocks):
                    slots=ti.ndarray(ti.types.vector(6, ti.i32), model.element_capacity),
                    diagonal=ti.ndarray(mat3, model.node_capacity), product=ti.ndarray(vec3, model.node_capacity),
                    index=ti.ndarray(ti.types.vector(2, ti.i32), 1), blocks=ti.ndarray(mat3, 1))
-        self._pairs: dict[tuple[int, int], int] | None = None
         self._staging = None        # an edit's rows on the host, reused (see topology_changed)
         self._build()
 

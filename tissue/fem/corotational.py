@@ -328,7 +328,12 @@ class CorotationalFEM:
         self.rotation, self.accumulation = rotation, accumulation
         self.rotation_tolerance = 1e-13 if backend.current().precision == "f64" else 1e-6
         self._version = None
+        self._colouring = None       # (order, offsets) of the colouring ablation; edits drop it
         self.resize()
+        self.model.subscribe(self)
+
+    def topology_changed(self, edit) -> None:
+        self._colouring = None
 
     def resize(self) -> bool:
         """Match the work arrays to the model's capacity; True when they were re-allocated."""
@@ -364,9 +369,6 @@ class CorotationalFEM:
     def n_elements(self) -> int:
         return self.model.n_elements
 
-    def inverted_count(self) -> int:
-        return int(self.work.inverted[0])
-
     def rotations(self) -> np.ndarray:
         """The element rotations of the last update (elements, 3, 3)."""
         return self.R.to_numpy()[:self.n_elements].astype(np.float64)
@@ -393,14 +395,13 @@ class CorotationalFEM:
             _scatter_kernel(m, self.work, what, src, self.accumulation)
 
     def _colours(self):
-        if getattr(self, "_colour_key", None) != (self.model.version, self.n_elements, self.model.tets.sum()):
+        if self._colouring is None:
             colours = colour_elements(self.model.tets, self.n_nodes)
             self.n_colours = len(colours)
-            self._colour_order = ti.ndarray(ti.i32, self.n_elements)
-            self._colour_order.from_numpy(np.concatenate(colours))
-            self._colour_offsets = [0] + [int(k) for k in np.cumsum([len(c) for c in colours])]
-            self._colour_key = (self.model.version, self.n_elements, self.model.tets.sum())
-        return self._colour_order, self._colour_offsets
+            order = ti.ndarray(ti.i32, self.n_elements)
+            order.from_numpy(np.concatenate(colours))
+            self._colouring = (order, [0] + [int(k) for k in np.cumsum([len(c) for c in colours])])
+        return self._colouring
 
     def rotations_numpy(self, positions: np.ndarray) -> np.ndarray:
         """Element rotations (m, 3, 3) at the given positions (also stored for later products)."""

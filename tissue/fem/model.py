@@ -205,10 +205,6 @@ class BodyModel:
     def incidence_capacity(self) -> int:
         return self._incidence.size
 
-    @property
-    def max_valence(self) -> int:
-        return int(self._valence[:self.n_nodes].max(initial=0))
-
     def mesh(self) -> TetMesh:
         """The elements in use as a TetMesh (all nodes kept, detached ones too)."""
         return TetMesh(self.points.copy(), self.tets.astype(np.int64), source=self.source)

@@ -138,8 +138,8 @@ class StepParameters:
 
 class ImplicitEuler:
     """Time integration of one soft body: its model (through `fem`), its state (`x`, `v`:
-    nodal ndarrays of the model's capacity; `positions()`/`velocities()` for numpy) and the
-    parameters of a step (`parameters`, changed with `set_parameters`)."""
+    ndarrays of the model's nodes; `positions()`/`velocities()` for numpy) and the parameters of a
+    step (`parameters`, changed with `set_parameters`)."""
 
     def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
@@ -182,9 +182,8 @@ class ImplicitEuler:
         self._pack_key = None
         self._external = np.zeros((0, 3))
         self.multigrid = None
-        self._resize()
         self.parameters = parameters
-        self._upload_parameters()
+        self._resize()
         if fixed is not None:
             self.model.set_held(fixed)
         if cg.preconditioner == "multigrid":
@@ -194,9 +193,7 @@ class ImplicitEuler:
     @classmethod
     def with_parameters(cls, fem: CorotationalFEM, parameters: StepParameters, **options) -> "ImplicitEuler":
         """A solver for these step parameters (the scene's `Solver` group gives them)."""
-        p = parameters
-        return cls(fem, p.dt, gravity=p.gravity, rayleigh_mass=p.rayleigh_mass, rayleigh_stiffness=p.rayleigh_stiffness,
-                   cg=p.cg, **options)
+        return cls(fem, **vars(parameters), **options)
 
     # ---- parameters ---------------------------------------------------------------------------
 
@@ -274,9 +271,9 @@ class ImplicitEuler:
             external = np.zeros((n, 3), dtype=real_numpy())
             external[:min(n, len(self._external))] = self._external[:n]
             arrays["external"].from_numpy(external)
-            arrays["parameters"].from_numpy(self.parameters.array().astype(real_numpy()))
         self.arrays = arrays
         self.x, self.v = arrays["x"], arrays["v"]
+        self._upload_parameters()
         self._version = key
 
     def topology_changed(self, edit) -> None:
