@@ -28,8 +28,9 @@ class Organs(Scene):
     stomach: SoftBody = field(default_factory=lambda: _held_at_top("stomach", 2000.0, (-0.086, 0.0, -0.023)))
     colon: SoftBody = field(default_factory=lambda: _held_at_top(
         "colon", 4000.0, (0.258, 0.0, 0.16), region=(0.0, 1.0, 0.0, 1.0, 0.75, 1.0)))
+    # Each step solved to ‖r‖/‖b‖ ≤ 1e-3, by the cheapest setting of python -m bench.scene_defaults.
     solver: Solver = field(default_factory=lambda: Solver(
-        cg_iterations=50, preconditioner="jacobi", rayleigh_mass=0.1, rayleigh_stiffness=0.02))
+        cg_iterations=100, cg_tolerance=1e-3, preconditioner="multigrid", rayleigh_mass=0.1, rayleigh_stiffness=0.02))
     render: Render = field(default_factory=lambda: Render(
         every=3, scalars="von_mises", camera="front", ground=False, size=(1280, 720),
         animation_size=(640, 360), title="Liver, stomach and colon hanging from their holds"))

@@ -16,6 +16,7 @@ import contextlib
 import io
 import os
 import platform
+import statistics
 import sys
 import time
 import traceback
@@ -145,10 +146,12 @@ def cmd_run(args) -> int:
         bar.close()
     finished, compiled = time.perf_counter(), compilation.snapshot() - compiled_at_start
     print(sim.timing_table())
-    counters = sim.stats.counters
-    if "cg_iterations" in counters:
-        print(f"last step: {counters['cg_iterations']:.0f} CG iterations, relative residual "
-              f"{counters.get('cg_residual', float('nan')):.2e}")
+    history = sim.stats.history
+    if history.get("cg_iterations"):
+        # The largest over bodies and steps: the run's worst step, not its last.
+        print(f"CG: {statistics.median(history['cg_iterations']):.0f} iterations per step (median; at most "
+              f"{max(history['cg_iterations']):.0f}), relative residual ‖r‖/‖b‖ at most "
+              f"{max(history['cg_residual']):.1e} over the run")
     # Kernels compile on their first launch, in whichever phase that falls: taken out of the
     # phases and shown on their own, so that the phases add up to the command's wall time.
     output_compile = compiled.seconds - build_compile - run_compile

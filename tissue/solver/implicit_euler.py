@@ -46,7 +46,7 @@ OPERATORS = ("assembled", "matrix_free")
 SERIAL_BELOW = 30_000
 
 # Scalar slots of the CG state kept on the device.
-DELTA, DELTA0, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE = range(12)
+DELTA, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE = range(11)
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class CGSettings:
     """Conjugate-gradient stopping rule and preconditioner (SOFA's CGLinearSolver defaults)."""
 
     max_iterations: int = 25
-    tolerance: float = 1e-9     # stop when rᵀz ≤ tolerance² r₀ᵀz₀ (‖r‖/‖b‖ without preconditioner)
+    tolerance: float = 1e-9     # stop when ‖r‖ ≤ tolerance ‖b‖, whatever the preconditioner
     threshold: float = 1e-30    # stop when |pᵀAp| falls under it
     preconditioner: str = "none"
     # "multigrid" (tissue.solver.multigrid): coarse grid size (None: 2.5 √nodes) and
@@ -255,7 +255,7 @@ class ImplicitEuler:
         old = getattr(self, "arrays", None)
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
-        arrays["scalars"] = ti.ndarray(real, 12)
+        arrays["scalars"] = ti.ndarray(real, 11)
         arrays["partial"] = ti.ndarray(real, (2, (n + BLOCK - 1) // BLOCK))
         arrays["parameters"] = ti.ndarray(real, 9)
         if old is None:
@@ -545,7 +545,6 @@ def _begin(k: ti.template(), o: ti.template(), tol):
     for _ in range(1):
         delta = _sum_partials(k, 0)
         k.scalars[DELTA] = delta
-        k.scalars[DELTA0] = delta
         k.scalars[RHS2] = _sum_partials(k, 1)
         k.scalars[ITERATION] = 0
         k.scalars[BREAKDOWN] = 0
@@ -580,8 +579,8 @@ def _iteration(k: ti.template(), o: ti.template()):
                     k.scalars[BREAKDOWN] = 1
             else:
                 k.scalars[ALPHA] = k.scalars[DELTA] / pq
-    for b in range(_blocks(k)):  # dv += α p, r -= α q, z = P⁻¹ r, and rᵀz
-        rz = 0.0
+    for b in range(_blocks(k)):  # dv += α p, r -= α q, z = P⁻¹ r, rᵀz and rᵀr
+        rz, rr = 0.0, 0.0
         if k.scalars[DONE] == 0:
             alpha = k.scalars[ALPHA]
             begin, end = _block_nodes(k, b)
@@ -592,7 +591,9 @@ def _iteration(k: ti.template(), o: ti.template()):
                 k.r[v] = r
                 k.z[v] = z
                 rz += r.dot(z)
+                rr += r.dot(r)
         k.partial[0, b] = rz
+        k.partial[1, b] = rr
     _precondition_coupled(k, o, False)
     for _ in range(1):
         if k.scalars[DONE] == 0:
@@ -602,7 +603,8 @@ def _iteration(k: ti.template(), o: ti.template()):
             k.scalars[ITERATION] = k.scalars[ITERATION] + 1
             k.scalars[BETA] = delta / k.scalars[DELTA_OLD]
             tol = k.parameters[TOLERANCE]
-            if delta <= tol * tol * k.scalars[DELTA0] or k.scalars[ITERATION] >= k.parameters[MAX_ITERATIONS]:
+            if _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or \
+                    k.scalars[ITERATION] >= k.parameters[MAX_ITERATIONS]:
                 k.scalars[DONE] = 1
     for v in range(k.counts[0]):
         if k.scalars[DONE] == 0:

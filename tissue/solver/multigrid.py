@@ -84,6 +84,18 @@ def largest_eigenvalue(A: sp.spmatrix) -> float:
     return float(spla.eigsh(S, k=1, which="LA", tol=1e-3, return_eigenvectors=False)[0])
 
 
+def _spd_inverse(A: np.ndarray) -> np.ndarray:
+    """A⁻¹ by Cholesky; where A is only semi-definite (on a small or thin body several coarse
+    nodes can span the same few fine nodes, so P loses rank), the pseudo-inverse, which keeps the
+    coarse correction symmetric positive semi-definite and the V-cycle a valid preconditioner."""
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(A), np.eye(len(A)))
+    except np.linalg.LinAlgError:
+        values, vectors = scipy.linalg.eigh(A)
+        kept = values > 1e-12 * values.max()
+        return (vectors[:, kept] / values[kept]) @ vectors[:, kept].T
+
+
 class Multigrid:
     """The two-level preconditioner of one ImplicitEuler (its assembled matrix, block-diagonal
     inverse and held nodes). `apply` is a Taichi function for the solver's kernels; `rebuild()`
@@ -119,8 +131,7 @@ class Multigrid:
         Ac = (P.T @ A0 @ P).toarray()
         active = np.flatnonzero(np.diag(Ac) > 1e-12 * np.abs(np.diag(Ac)).max())
         C = np.zeros_like(Ac)
-        C[np.ix_(active, active)] = scipy.linalg.cho_solve(
-            scipy.linalg.cho_factor(Ac[np.ix_(active, active)]), np.eye(len(active)))
+        C[np.ix_(active, active)] = _spd_inverse(Ac[np.ix_(active, active)])
         C = 0.5 * (C + C.T)
         # Coarse node -> its (4 fine node + corner) entries of nonzero weight, for the restriction.
         entries = np.flatnonzero(weights.ravel())
