@@ -35,7 +35,7 @@ class Incline(Scene):
     contact: Contact = field(default_factory=lambda: Contact(friction=0.4, distance=2e-3, tolerance=1e-8,
                                                              max_iterations=200))
     # Each step solved to ‖r‖/‖b‖ ≤ 1e-3, by the cheapest setting of python -m bench.scene_defaults.
-    solver: Solver = field(default_factory=lambda: Solver(cg_iterations=500, cg_tolerance=1e-3, preconditioner="jacobi",
+    solver: Solver = field(default_factory=lambda: Solver(cg_iterations=100, cg_tolerance=1e-3, preconditioner="multigrid",
                                                           rayleigh_mass=0.0, rayleigh_stiffness=0.01))
     # The block in a tissue colour over the faint start position (the distance slid shows; a
     # displacement colour map would paint the whole translating block one colour).
