@@ -136,12 +136,15 @@ class ContactResult:
 class ContactStage:
     """Contact, friction and attachments between soft bodies and rigid obstacles.
 
-    bodies: ContactBody (or bare solvers); obstacles: RigidObstacle; attachments: Attachment.
+    bodies: ContactBody (or bare solvers); obstacles: RigidObstacle; attachments: Attachment;
+    instruments: rigid tools coupled to a device (tissue.haptics.Instrument): each of their jaws is
+    an obstacle for detection and a body of one node for W (its compliance h A_hap⁻¹) and the
+    correction; `step()` starts with their free motion toward `instrument.device(time)`.
     Call `step()` after every body has done its free motion (`solver.step()`).
     """
 
     def __init__(self, bodies, obstacles=(), settings: Contact | None = None, attachments=(),
-                 stats: Stats | None = None):
+                 stats: Stats | None = None, instruments=()):
         settings = validate(Contact() if settings is None else settings)
         self.bodies = [b if isinstance(b, ContactBody) else ContactBody(b) for b in bodies]
         if not self.bodies:
@@ -154,6 +157,11 @@ class ContactStage:
         for o in self.obstacles:
             if not isinstance(o, RigidObstacle):
                 raise TissueError(f"contact: obstacles must be RigidObstacle, got {type(o).__name__}")
+        self.instruments = list(instruments)
+        self.jaws = [jaw for instrument in self.instruments for jaw in instrument.jaws]
+        # Jaw j is obstacle _first_jaw + j, and body len(bodies) + j of the rows.
+        self._first_jaw = len(self.obstacles)
+        self.obstacles += [jaw.obstacle for jaw in self.jaws]
         self.attachments = list(attachments)
         if settings.delassus == "factored" and self.attachments:
             raise TissueError("delassus: 'factored' cannot take attachments (their Schur complement needs W "
@@ -182,7 +190,7 @@ class ContactStage:
         self._buffers, self._flip = [np.empty(0), np.empty(0)], 0
         self._scaled = np.empty(0)
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
-        self.compliance = [kind(b.solver) for b in self.bodies]
+        self.compliance = [kind(b.solver) for b in self.bodies] + self.jaws
         self._storages = [self.detector.storage]
         self._storages += [c.storage for c in self.compliance if isinstance(c, WarpedCompliance)]
         self.time = 0.0
@@ -235,7 +243,10 @@ class ContactStage:
         return contacts if not stuck.any() else contacts.take(~stuck)
 
     def _poses(self, time: float):
-        """Obstacle poses at `time` (the last two are kept: a step needs its start and end)."""
+        """Obstacle poses at `time` (the last two are kept: a step needs its start and end; not
+        with instruments, whose jaws are moved by the contacts after they were asked)."""
+        if self.jaws:
+            return self.poses(time)
         key = round(time * 1e9)                        # ns: the end of one step is the start of the next
         cached = self._pose_cache.get(key)
         if cached is None:
@@ -262,6 +273,10 @@ class ContactStage:
         default the stage's clock advanced by dt)."""
         s, h, stats = self.settings, self.dt, self.stats
         self.time = self.time + h if time is None else float(time)
+        if self.instruments:
+            with stats.stage("instruments"):
+                for instrument in self.instruments:
+                    instrument.free_motion(instrument.device(self.time), h, self.time)
         with stats.stage("detection"):
             contacts = self._drop_fixed(self.detector.detect(
                 [b.solver.x for b in self.bodies], s.distance, self._poses(self.time),
@@ -281,7 +296,9 @@ class ContactStage:
             prev = [x[:, 3:] for x in self.detector.state]
             mu = self._friction(contacts)
             rows = build_rows(contacts, free, prev, self.attachments, self.time, frictionless=mu == 0)
-            touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.bodies))).tolist()
+            if self.jaws:
+                rows = self._with_jaws(rows, contacts, mu == 0)
+            touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
             if s.compliance == "warped":
                 jds = {b: JaggedDiagonal(rows, b) for b in touched}
 
@@ -321,6 +338,20 @@ class ContactStage:
                     penetration=float(max(0.0, -normal.min())) if nc else 0.0,
                     contact_storage_growths=self.storage_growths)
         return self.last
+
+    def _with_jaws(self, rows: ConstraintRows, contacts: Contacts, frictionless: np.ndarray) -> ConstraintRows:
+        """The rows with their blocks on the jaws they touch: minus the row directions (a jaw's
+        point moving along d closes the gap), at the jaw's one node (a frictionless contact's
+        tangent rows stay empty, as on the soft side)."""
+        jaw = np.where(contacts.soft, -1, contacts.other - self._first_jaw)
+        on = np.flatnonzero(jaw >= 0)
+        if not len(on):
+            return rows
+        value = rows.frames[on] * np.where(frictionless[on, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
+        return replace(rows, block=np.r_[rows.block, on].astype(np.int32),
+                       body=np.r_[rows.body, len(self.bodies) + jaw[on]].astype(np.int32),
+                       node=np.r_[rows.node, np.zeros(len(on))].astype(np.int32),
+                       value=np.concatenate([rows.value, -value]))
 
     def _factors_pay(self, rows: ConstraintRows, touched: list[int], jds: dict) -> bool:
         """Whether the warped W is kept as its factors ("auto": when they take at most half of W's

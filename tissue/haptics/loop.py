@@ -1,0 +1,371 @@
+"""The haptic loop in its own process, fed by the simulation through shared memory.
+
+Why a process: a running Taichi CPU kernel holds Python's GIL (a thread meant to tick every 1 ms
+stalled 61 ms behind a 77 ms kernel), so a haptic thread in the simulation's process would stop
+at every step. The loop runs in a process started by `spawn` (a fresh interpreter: no copy of the
+simulation's Taichi state), with Taichi on one CPU thread, its re-solve kernel compiled (or loaded
+from the offline cache) and run once before its clock starts.
+
+Hand-off. After each step the simulation publishes the step's restricted problem
+(tissue.haptics.lcp.restrict: W among the instrument's rows and those coupled to them, δ_free, λ, μ,
+the rows' blocks on the jaws, the jaws' state) into a SharedRecord; the loop, every tick, reads
+the device, writes its pose into a second SharedRecord (the simulation's next step reads it as
+the coupling's target), re-solves the newest problem for that pose and sends the force.
+
+SharedRecord: a header (sequence, length, CRC-32) and a float64 payload in one shared-memory
+block, written under a sequence lock: the writer makes the sequence odd, writes the payload and
+its CRC, makes it even; a reader copies the payload between two reads of the sequence and keeps
+the copy only if both are the same even number (x86 keeps stores in order and loads in order).
+The reader checks the CRC too, so a torn record that slipped through would be an error, not a
+force.
+
+Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; the loop also ends
+when its parent process is gone (its parent id changes: checked every tick), and when no problem
+has come for `idle_timeout` s. A loop that died is reported by the simulation's next `publish` as
+a TissueError. The loop writes its log (every tick: clock, period, force, grip, contact force,
+sweeps, residual, step, solve time) to `log_path` as it ends, however it ends but SIGKILL.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+import zlib
+from dataclasses import dataclass
+from multiprocessing import shared_memory
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import TissueError
+from .instrument import DevicePose
+from .lcp import MAX_CONTACTS, MAX_JAWS, MAX_SWEEPS, TOLERANCE, HapticProblem
+
+HEADER = 3                     # int64: sequence, payload length, CRC-32
+
+
+class TornRead(TissueError):
+    """A record whose CRC does not match its payload."""
+
+
+class SharedRecord:
+    """A float64 record in shared memory under a sequence lock (see the module docstring)."""
+
+    def __init__(self, capacity: int, name: str | None = None):
+        size = 8 * (HEADER + int(capacity))
+        if name is None:
+            self.shm = shared_memory.SharedMemory(create=True, size=size)
+            self.owner = True
+        else:
+            # (A spawned child shares its parent's resource tracker: attaching registers the name
+            # again in the same set, and the tracker unlinks it if both processes die without.)
+            self.shm = shared_memory.SharedMemory(name=name)
+            self.owner = False
+        self.name = self.shm.name
+        self.header = np.ndarray((HEADER,), np.int64, buffer=self.shm.buf)
+        self.payload = np.ndarray(((self.shm.size - 8 * HEADER) // 8,), np.float64, buffer=self.shm.buf,
+                                  offset=8 * HEADER)
+        if self.owner:
+            self.header[:] = 0
+        self.retries = 0
+
+    @property
+    def sequence(self) -> int:
+        """The number of records written so far (odd/2 while one is being written)."""
+        return int(self.header[0]) // 2
+
+    def write(self, data: np.ndarray) -> None:
+        data = np.ascontiguousarray(data, dtype=np.float64).ravel()
+        if len(data) > len(self.payload):
+            raise TissueError(f"haptics: a record of {len(data)} values exceeds the channel's {len(self.payload)}")
+        h = self.header
+        h[0] += 1
+        self.payload[:len(data)] = data
+        h[1] = len(data)
+        h[2] = zlib.crc32(data)
+        h[0] += 1
+
+    def read(self, attempts: int = 1000):
+        """(sequence, a copy of the payload) of the newest complete record, or None if none yet."""
+        h = self.header
+        for _ in range(attempts):
+            s = int(h[0])
+            if s == 0:
+                return None
+            if s % 2:
+                self.retries += 1
+                continue
+            n, crc = int(h[1]), int(h[2])
+            data = self.payload[:n].copy()
+            if int(h[0]) != s:
+                self.retries += 1
+                continue
+            if zlib.crc32(data) != crc:
+                raise TornRead(f"haptics: record {s // 2} failed its CRC ({n} values)")
+            return s // 2, data
+        raise TissueError(f"haptics: no consistent read of the shared record in {attempts} attempts")
+
+    def close(self) -> None:
+        self.header = self.payload = None
+        self.shm.close()
+        if self.owner:
+            self.shm.unlink()
+
+
+# ---- a HapticProblem as a flat record ----------------------------------------------------------
+
+META = 18                      # step, time, h, n, jaws, device jaw, device position (3), orientation (9)
+PER_JAW = 15                   # follow, compliance, stiffness, x (3), target (3), offset (3), axis (3)
+
+
+def record_size(contacts: int, jaws: int = MAX_JAWS) -> int:
+    m = 3 * contacts
+    return META + PER_JAW * jaws + m * m + 3 * m + contacts + 3 * m * jaws
+
+
+def pack(p: HapticProblem) -> np.ndarray:
+    meta = np.r_[p.step, p.time, p.h, p.n, p.jaws, p.device_jaw, p.device_position, p.device_orientation.ravel()]
+    jaws = np.column_stack([p.follow, p.compliance, p.stiffness, p.x, p.target, p.offset, p.axis]).ravel()
+    return np.concatenate([meta, jaws, p.W.ravel(), p.q, p.lam, p.mu, p.J.ravel()])
+
+
+def unpack(data: np.ndarray) -> HapticProblem:
+    n, jaws = int(data[3]), int(data[4])
+    m = 3 * n
+    J = data[META:META + PER_JAW * jaws].reshape(jaws, PER_JAW)
+    o = META + PER_JAW * jaws
+    W = data[o:o + m * m].reshape(m, m)
+    o += m * m
+    q, lam, mu = data[o:o + m], data[o + m:o + 2 * m], data[o + 2 * m:o + 2 * m + n]
+    o += 2 * m + n
+    return HapticProblem(step=int(data[0]), time=float(data[1]), h=float(data[2]), W=W, q=q, lam=lam, mu=mu,
+                         J=data[o:o + 3 * m * jaws].reshape(m, 3 * jaws), follow=J[:, 0], compliance=J[:, 1],
+                         stiffness=J[:, 2], x=J[:, 3:6], target=J[:, 6:9], offset=J[:, 9:12], axis=J[:, 12:15],
+                         device_position=data[6:9], device_orientation=data[9:18].reshape(3, 3),
+                         device_jaw=float(data[5]))
+
+
+def pack_pose(pose: DevicePose, ticks: int) -> np.ndarray:
+    return np.r_[pose.time, pose.position, pose.orientation.ravel(), pose.jaw, ticks]
+
+
+def unpack_pose(data: np.ndarray) -> DevicePose:
+    return DevicePose(data[1:4].copy(), data[4:13].reshape(3, 3).copy(), float(data[13]), float(data[0]))
+
+
+# ---- the loop's process ----------------------------------------------------------------------------
+
+LOG_COLUMNS = ("clock", "period", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "sweeps", "residual", "step",
+               "solve_us", "x", "y", "z")
+
+
+@dataclass
+class _Config:
+    device: object
+    rate: float
+    max_contacts: int
+    max_sweeps: int
+    tolerance: float
+    problem_channel: str
+    pose_channel: str
+    parent: int
+    idle_timeout: float
+    log_path: str
+    max_ticks: int
+
+
+def _sleep_until(deadline: float) -> None:
+    """Sleep to ~0.15 ms before the deadline, then spin (the scheduler wakes a sleeper 50-100 µs late)."""
+    left = deadline - time.perf_counter()
+    if left > 2e-4:
+        time.sleep(left - 1.5e-4)
+    while time.perf_counter() < deadline:
+        pass
+
+
+def _run(config: _Config, epoch, ready, stop) -> None:
+    """The haptic process: see the module docstring."""
+    from .. import backend
+    from .lcp import HapticSolver
+
+    backend.init("cpu", "f64", cpu_max_num_threads=1)
+    solver = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
+    solver.warm()
+    problems = SharedRecord(0, name=config.problem_channel)
+    poses = SharedRecord(0, name=config.pose_channel)
+    device = config.device
+    log = np.full((config.max_ticks, len(LOG_COLUMNS)), np.nan)
+    ticks, loaded, reason = 0, -1, "stopped"
+    ready.set()
+    try:
+        while epoch.value == 0.0 and not stop.is_set():
+            time.sleep(1e-3)
+        period = 1.0 / config.rate
+        start = epoch.value
+        next_tick, last_tick, last_problem = time.perf_counter(), None, time.perf_counter()
+        while True:
+            if stop.is_set():
+                break
+            if os.getppid() != config.parent:
+                reason = "parent gone"
+                break
+            now = time.perf_counter()
+            if problems.sequence != loaded:
+                got = problems.read()
+                if got is not None:
+                    loaded, data = got
+                    solver.load(unpack(data))
+                    last_problem = now
+            elif now - last_problem > config.idle_timeout:
+                reason = "idle"
+                break
+            clock = time.monotonic() - start
+            pose = device.read(clock)
+            poses.write(pack_pose(pose, ticks))
+            row = log[ticks % config.max_ticks]
+            row[0], row[1] = clock, np.nan if last_tick is None else now - last_tick
+            if solver.problem is not None:
+                t0 = time.perf_counter()
+                f = solver.solve(pose.position, pose.orientation, pose.jaw)
+                row[12] = 1e6 * (time.perf_counter() - t0)
+                device.send(clock, f.force, f.grip)
+                row[2:5], row[5], row[6:9] = f.force, f.grip, f.contact
+                row[9], row[10], row[11] = f.sweeps, f.residual, solver.problem.step
+                row[13:16] = pose.position
+            ticks += 1
+            last_tick = now
+            next_tick += period
+            if next_tick < time.perf_counter() - period:     # far behind (a stall): no burst of ticks
+                next_tick = time.perf_counter()
+            _sleep_until(next_tick)
+    finally:
+        kept = log[:min(ticks, config.max_ticks)] if ticks <= config.max_ticks else np.roll(
+            log, -(ticks % config.max_ticks), axis=0)
+        extra = {}
+        if hasattr(device, "forces"):
+            extra["device_forces"] = device.forces()
+        if config.log_path:
+            np.savez(config.log_path, log=kept, columns=np.array(LOG_COLUMNS), ticks=ticks, reason=reason,
+                     retries=problems.retries, **extra)
+        if hasattr(device, "close"):
+            device.close()
+        problems.close()
+        poses.close()
+
+
+class HapticLoop:
+    """The parent's handle on the haptic process (see the module docstring).
+
+        with HapticLoop(ScriptedDevice(trajectory), log_path="haptic.npz") as loop:
+            instrument.device = loop.device_pose        # the coupling's target, each step
+            while ...:
+                loop.wait_for(sim.time + sim.dt)        # real time: step when the clock is there
+                sim.step()
+                loop.publish(stage)
+        loop.log                                        # the loop's ticks (LOG_COLUMNS)
+    """
+
+    def __init__(self, device, rate: float = 1000.0, max_contacts: int = MAX_CONTACTS, max_sweeps: int = MAX_SWEEPS,
+                 tolerance: float = TOLERANCE, log_path: str | os.PathLike | None = None,
+                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000):
+        if not (np.isfinite(rate) and 1.0 <= rate <= 20_000.0):
+            raise TissueError(f"rate: must be between 1 and 20000 Hz, got {rate!r}")
+        if not (idle_timeout > 0):
+            raise TissueError(f"idle_timeout: must be > 0 s, got {idle_timeout!r}")
+        self.device, self.rate = device, float(rate)
+        self.max_contacts, self.max_sweeps, self.tolerance = int(max_contacts), int(max_sweeps), float(tolerance)
+        self.log_path = None if log_path is None else str(log_path)
+        self.idle_timeout, self.max_ticks = float(idle_timeout), int(max_ticks)
+        self.process = None
+        self.log = None
+        self.published = 0
+
+    # ---- life ---------------------------------------------------------------------------------
+
+    def start(self, timeout: float = 300.0) -> "HapticLoop":
+        """Start the process, wait until its kernel is ready, then start its clock (now)."""
+        ctx = multiprocessing.get_context("spawn")
+        self.problems = SharedRecord(record_size(self.max_contacts))
+        self.poses = SharedRecord(32)
+        self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
+        config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
+                         self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks)
+        self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
+                                   name="tissue-haptics", daemon=True)
+        self.process.start()
+        deadline = time.monotonic() + timeout
+        while not self._ready.wait(0.1):
+            if not self.process.is_alive() or time.monotonic() > deadline:
+                code = self.process.exitcode
+                self._cleanup()
+                raise TissueError(f"haptic loop: the process did not start (exit code {code})")
+        self._epoch.value = time.monotonic()
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """End the loop and collect its log (`self.log`: the rows, `self.log_columns`)."""
+        if self.process is None:
+            return
+        self._stop.set()
+        self.process.join(timeout)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(2.0)
+        self.exitcode = self.process.exitcode
+        self._cleanup()
+        if self.log_path and Path(self.log_path).is_file():
+            with np.load(self.log_path) as saved:
+                self.log = {k: saved[k] for k in saved.files}
+
+    def _cleanup(self) -> None:
+        for record in (getattr(self, "problems", None), getattr(self, "poses", None)):
+            if record is not None and record.header is not None:
+                record.close()
+        self.process = None
+
+    def __enter__(self) -> "HapticLoop":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ---- the simulation's side --------------------------------------------------------------------
+
+    @property
+    def pid(self) -> int | None:
+        return None if self.process is None else self.process.pid
+
+    def clock(self) -> float:
+        """The loop's clock (s since start), the device's time base."""
+        return time.monotonic() - self._epoch.value
+
+    def wait_for(self, clock: float) -> None:
+        """Sleep until the loop's clock reaches `clock` (the simulation kept to real time)."""
+        left = clock - self.clock()
+        if left > 0:
+            time.sleep(left)
+
+    def device_pose(self, _time: float | None = None) -> DevicePose:
+        """The newest device pose the loop read (an instrument's `device`); the device's own
+        pose at time 0 until the first tick."""
+        got = self.poses.read()
+        if got is None:
+            return self.device.read(0.0)
+        return unpack_pose(got[1])
+
+    def _alive(self) -> None:
+        if self.process is None:
+            raise TissueError("haptic loop: not running (start() it first)")
+        if not self.process.is_alive():
+            code = self.process.exitcode
+            self._cleanup()
+            raise TissueError(f"haptic loop: the process ended (exit code {code}); the simulation stops")
+
+    def publish(self, stage, step: int | None = None) -> None:
+        """Hand the loop the contact stage's last problem (see tissue.haptics.lcp.restrict)."""
+        from .lcp import restrict
+
+        self._alive()
+        self.published += 1
+        self.problems.write(pack(restrict(stage, self.published if step is None else step, self.max_contacts)))
