@@ -11,7 +11,8 @@ Only these names are written: nothing else in the folder is touched or deleted. 
 during the run (positions, and stresses when needed) and rendered at the end, so the colour range
 and the camera frame cover the whole motion. pyvista is imported only when rendering. Rigid things
 the stages declare (`drawables()`, see `tissue.scene.Drawable`: the contact layer's obstacles)
-are drawn in every image and follow their prescribed motion.
+are drawn in every image and follow their prescribed motion; a stage's `write_outputs(directory)`
+adds its own files (the haptics stage's forces.csv, and forces.png with png output).
 """
 
 from __future__ import annotations
@@ -131,6 +132,10 @@ class RunOutput:
             start = time.perf_counter()
             self._render(progress)
             self.seconds["render"] = time.perf_counter() - start
+        for stage in self.sim.stages:      # a stage's own files (the haptics stage's force log and plot)
+            writer = getattr(stage, "write_outputs", None)
+            if writer is not None:
+                self.written += writer(self.directory, figures="png" in self.outputs)
         self.written.append(self.write_stats(extra or {}))
         return self.written
 

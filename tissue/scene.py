@@ -33,12 +33,14 @@ How a later layer plugs in (contact, attachments, haptics, cutting)
        ({sub-stage: seconds of the last step}, {counter: value}) to be merged into `sim.stats`, and
        `drawables()` returning the rigid things it wants in the run's images (`Drawable`: a surface
        in its own frame and a pose over time; `tissue.output` draws and moves them without knowing
-       what they are, e.g. the contact layer's obstacles).
+       what they are, e.g. the contact layer's obstacles), and `write_outputs(directory, figures)` writing
+       its own files beside the images (the haptics stage's force log and plot), returning their paths.
     3. A builder `build(sim) -> stage | None` returns the stage only when the scene declares the
        layer (`sim.scene.parts(Contact)` lists such fields), and is registered at its place in the
        data flow of DESIGN.md (free motion, detection, compliance, LCP, correction, hand-off,
        topology) with `add_stage(build, after="free_motion")` when the layer's module is imported
-       (which a scene module naming the layer's Options type does). A scene without contact thus
+       (which a scene module naming the layer's Options type does); builders run in that order and
+       may look at the stages built before them (`sim.stages`). A scene without contact thus
        builds no contact stage and allocates nothing for it.
     Rigid obstacles follow the same pattern as soft bodies: an `Obstacle` Options type, found among
     the scene's fields with `scene.parts(Obstacle)`.
@@ -572,7 +574,11 @@ class Simulation:
         self.bodies: dict[str, Body] = {name: Body(name, spec, scene) for name, spec in scene.bodies().items()}
         self.mesh_seconds = _mesh_seconds - meshes_before
         self.compile_seconds_by_step: list[float] = []
-        self.stages: list[Stage] = [s for s in (build(self) for build in STAGES) if s is not None]
+        self.stages: list[Stage] = []          # built in order: a builder may look at the stages before it
+        for build in STAGES:
+            stage = build(self)
+            if stage is not None:
+                self.stages.append(stage)
         self.stats = Stats()
         self.time = 0.0
         self.step_count = 0

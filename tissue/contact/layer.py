@@ -109,7 +109,11 @@ class ContactLayer:
         self.specs = obstacles
         self.obstacles = {name: spec.build(name) for name, spec in obstacles.items()}
         bodies = [ContactBody(b.solver, b.faces) for b in sim.bodies.values()]
-        self.stage = ContactStage(bodies, list(self.obstacles.values()), settings)
+        # Instruments: the scene's parts that build one (tissue.haptics.Tool), coupled to a device.
+        self.instruments = {name: spec.build_instrument(name) for name, spec in sim.scene.parts(Options).items()
+                            if hasattr(spec, "build_instrument")}
+        self.stage = ContactStage(bodies, list(self.obstacles.values()), settings,
+                                  instruments=list(self.instruments.values()))
 
     def step(self, sim) -> None:
         self.stage.step(time=sim.time + sim.dt)

@@ -109,6 +109,7 @@ class Jaw:
         v_free = (c.mass * self.v + h * c.stiffness * (target - self.x) + h * c.damping * target_velocity) / c.matrix(h)
         self.v, self.x = v_free, self.x + h * v_free
         self.target, self.R, self.h, self.end_time = target, pose.orientation, h, end_time
+        self.jds = None                                  # no rows yet this step
 
     def coupling_force(self) -> np.ndarray:
         """The spring's force on the device, K (x - x_d) (N)."""
@@ -143,6 +144,8 @@ class Jaw:
 
     def _blocks(self):
         """(block rows, their 3×3 blocks on the jaw), one block per row (a contact touches one jaw once)."""
+        if self.jds is None:
+            return np.zeros(0, np.int64), np.zeros((0, 3, 3))
         return self.jds.row, self.jds.value.astype(np.float64)
 
     def add_to(self, W: np.ndarray) -> None:
@@ -182,12 +185,15 @@ class Jaw:
 
 
 class Instrument:
-    """Jaws moved together by one device: a probe (one jaw) or a grasper (two, opening apart)."""
+    """Jaws moved together by one device: a probe (one jaw) or a grasper (two, opening apart).
 
-    def __init__(self, jaws: list[Jaw], name: str = "instrument"):
+    device: time -> DevicePose, read by the contact stage at the end of each step (a Trajectory, a
+    HapticLoop's `device_pose`); color: how the run's images draw it (None: obstacle grey)."""
+
+    def __init__(self, jaws: list[Jaw], name: str = "instrument", device=None, color: str | None = None):
         if not jaws:
             raise TissueError(f"{name}: an instrument needs at least one jaw")
-        self.jaws, self.name = list(jaws), name
+        self.jaws, self.name, self.device, self.color = list(jaws), name, device, color
         self.pose = self.previous = None
 
     def place(self, pose: DevicePose) -> None:
@@ -196,6 +202,8 @@ class Instrument:
         self.pose = self.previous = pose
 
     def free_motion(self, pose: DevicePose, h: float, end_time: float) -> None:
+        if not isinstance(pose, DevicePose):
+            raise TissueError(f"{self.name}: its device gave {type(pose).__name__}, expected a DevicePose")
         if self.pose is None:
             self.place(pose)
         self.previous, self.pose = self.pose, pose

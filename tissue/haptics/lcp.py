@@ -11,7 +11,10 @@ within one step).
 
 Re-solve (`HapticSolver`). Between steps the device moves: each jaw's target moves by Δⱼ, its
 free position by gⱼ Δⱼ (gⱼ = ∂x_free/∂x_d, tissue.haptics.instrument.Coupling.follow), so
-δ_free' = δ_free + Σⱼ Jⱼ gⱼ Δⱼ (Jⱼ: the rows' blocks on jaw j). Projected Gauss-Seidel with
+δ_free' = δ_free + Σⱼ Jⱼ gⱼ Δⱼ (Jⱼ: the rows' blocks on jaw j): the step redone with the device
+where it is now (the paper's scheme), the bodies' own motion since the step left out. (Adding it,
+as a first-order prediction of the next step from the velocities after this one, made the force
+at a step boundary jump more, not less, on a probe pressed into a block: measured, dropped.) Projected Gauss-Seidel with
 Coulomb friction (the contact stage's exact 3×3 local solve) from the last λ, at most
 `max_sweeps` sweeps: a bounded time per tick. The jaw then sits at
 xⱼ' = xⱼ⁺ + gⱼ Δⱼ + h A⁻¹ Jⱼᵀ (λ' - λ) and the device renders the springs' force Σ K (xⱼ' - x_dⱼ').
@@ -91,7 +94,8 @@ def restrict(stage, step: int = 0, max_contacts: int = MAX_CONTACTS) -> HapticPr
     k = 0 if rows is None else rows.n_contacts
     nb = len(stage.bodies)
     sel = np.zeros(0, np.int64)
-    W = q = lam = J = mu = np.zeros(0)
+    W, J = np.zeros((0, 0)), np.zeros((0, 3 * len(jaws)))
+    q = lam = mu = np.zeros(0)
     if k:
         lam_all = last.impulses[:3 * k]
         on_jaw = np.zeros(k, bool)
