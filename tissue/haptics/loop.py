@@ -19,6 +19,11 @@ the copy only if both are the same even number (x86 keeps stores in order and lo
 The reader checks the CRC too, so a torn record that slipped through would be an error, not a
 force.
 
+Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
+scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
+whatever else runs; it sleeps between ticks (spinning only the last 0.15 ms), so it takes a
+fraction of a core. Refused, it runs at normal priority (the log says which).
+
 Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; the loop also ends
 when its parent process is gone (its parent id changes: checked every tick), and when no problem
 has come for `idle_timeout` s. A loop that died is reported by the simulation's next `publish` as
@@ -174,6 +179,7 @@ class _Config:
     idle_timeout: float
     log_path: str
     max_ticks: int
+    realtime: bool
 
 
 def _sleep_until(deadline: float) -> None:
@@ -190,6 +196,13 @@ def _run(config: _Config, epoch, ready, stop) -> None:
     from .. import backend
     from .lcp import HapticSolver
 
+    priority = "normal"
+    if config.realtime:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+            priority = "realtime (SCHED_FIFO 10)"
+        except (PermissionError, AttributeError, OSError):
+            priority = "normal (real-time priority refused)"
     backend.init("cpu", "f64", cpu_max_num_threads=1)
     solver = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
     solver.warm()
@@ -248,7 +261,7 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             extra["device_forces"] = device.forces()
         if config.log_path:
             np.savez(config.log_path, log=kept, columns=np.array(LOG_COLUMNS), ticks=ticks, reason=reason,
-                     retries=problems.retries, **extra)
+                     retries=problems.retries, priority=priority, **extra)
         if hasattr(device, "close"):
             device.close()
         problems.close()
@@ -269,7 +282,7 @@ class HapticLoop:
 
     def __init__(self, device, rate: float = 1000.0, max_contacts: int = MAX_CONTACTS, max_sweeps: int = MAX_SWEEPS,
                  tolerance: float = TOLERANCE, log_path: str | os.PathLike | None = None,
-                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000):
+                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000, realtime: bool = False):
         if not (np.isfinite(rate) and 1.0 <= rate <= 20_000.0):
             raise TissueError(f"rate: must be between 1 and 20000 Hz, got {rate!r}")
         if not (idle_timeout > 0):
@@ -277,7 +290,7 @@ class HapticLoop:
         self.device, self.rate = device, float(rate)
         self.max_contacts, self.max_sweeps, self.tolerance = int(max_contacts), int(max_sweeps), float(tolerance)
         self.log_path = None if log_path is None else str(log_path)
-        self.idle_timeout, self.max_ticks = float(idle_timeout), int(max_ticks)
+        self.idle_timeout, self.max_ticks, self.realtime = float(idle_timeout), int(max_ticks), bool(realtime)
         self.process = None
         self.log = None
         self.published = 0
@@ -291,7 +304,7 @@ class HapticLoop:
         self.poses = SharedRecord(32)
         self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
         config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
-                         self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks)
+                         self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks, self.realtime)
         self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
                                    name="tissue-haptics", daemon=True)
         self.process.start()
@@ -365,10 +378,12 @@ class HapticLoop:
             self._cleanup()
             raise TissueError(f"haptic loop: the process ended (exit code {code}); the simulation stops")
 
-    def publish(self, stage, step: int | None = None) -> None:
-        """Hand the loop the contact stage's last problem (see tissue.haptics.lcp.restrict)."""
+    def publish(self, stage, step: int | None = None) -> HapticProblem:
+        """Hand the loop the contact stage's last problem (see tissue.haptics.lcp.restrict); returns it."""
         from .lcp import restrict
 
         self._alive()
         self.published += 1
-        self.problems.write(pack(restrict(stage, self.published if step is None else step, self.max_contacts)))
+        problem = restrict(stage, self.published if step is None else step, self.max_contacts)
+        self.problems.write(pack(problem))
+        return problem
