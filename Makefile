@@ -40,6 +40,7 @@ test-all: setup
 bench: setup
 	$(PY) -m bench.deformation
 	$(PY) -m bench.contact
+	$(PY) -m bench.haptics
 	$(PY) -m bench.accuracy
 	$(PY) -m bench.stability
 
@@ -48,6 +49,7 @@ figures: demo
 	$(VENV)/bin/tissue run organs --out figures/organs
 	$(VENV)/bin/tissue run incline --out figures/incline
 	$(VENV)/bin/tissue run liver_press --out figures/liver_press
+	$(VENV)/bin/tissue run liver_grasp --out figures/liver_grasp
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -24,9 +24,11 @@ SMALL = {  # the scene's own mesh fields, made small: each run takes a few secon
     "liver": ["liver.tets=300"],
     "organs": ["liver.tets=300", "stomach.tets=300", "colon.tets=300"],
     "liver_press": ["liver.tets=300", "stomach.tets=300"],
+    "liver_grasp": ["liver.tets=300", "stomach.tets=300"],
 }
 STAGES = {"beam": ["free_motion"], "incline": ["free_motion", "contact"], "liver": ["free_motion"],
-          "organs": ["free_motion"], "liver_press": ["free_motion", "contact"]}
+          "organs": ["free_motion"], "liver_press": ["free_motion", "contact"],
+          "liver_grasp": ["free_motion", "contact", "haptics"]}
 
 
 def test_every_scene_is_covered():

@@ -26,6 +26,7 @@ answers the address the last pose came from.
 
 from __future__ import annotations
 
+import bisect
 import socket
 import struct
 from pathlib import Path
@@ -62,8 +63,8 @@ def matrix_to_quaternion(R) -> np.ndarray:
 
 
 class Trajectory:
-    """Timestamped poses, interpolated linearly (position, jaw; orientation: the nearest key's),
-    held before the first and after the last.
+    """Timestamped poses, interpolated linearly (position, jaw; orientation: the last key's at or
+    before the time), held before the first and after the last.
 
     keys: (k, 9) rows t, x, y, z, qw, qx, qy, qz, jaw, or (k, 5) rows t, x, y, z, jaw (orientation:
     `orientation`, identity by default). A file (`Trajectory.load`): .npy or .csv of such rows."""
@@ -81,6 +82,7 @@ class Trajectory:
             q = matrix_to_quaternion(np.eye(3) if orientation is None else orientation)
             keys = np.column_stack([keys[:, :4], np.tile(q, (len(keys), 1)), keys[:, 4]])
         self.keys = keys
+        self._times = keys[:, 0].tolist()
         self._R = [quaternion_to_matrix(k[4:8]) for k in keys]
 
     @staticmethod
@@ -105,10 +107,17 @@ class Trajectory:
             np.savetxt(path, self.keys, delimiter=",", header="t,x,y,z,qw,qx,qy,qz,jaw")
 
     def __call__(self, time: float) -> DevicePose:
-        k = self.keys
-        position = np.array([np.interp(time, k[:, 0], k[:, 1 + i]) for i in range(3)])
-        nearest = int(np.clip(np.searchsorted(k[:, 0], time), 0, len(k) - 1))
-        return DevicePose(position, self._R[nearest], float(np.interp(time, k[:, 0], k[:, 8])), float(time))
+        # (Called every haptic tick: a bisection and one lerp of a row, ~5 µs, not np.interp per column.)
+        times, k = self._times, self.keys
+        i = bisect.bisect_right(times, time) - 1
+        if i < 0:
+            row, i = k[0], 0
+        elif i >= len(times) - 1:
+            row, i = k[-1], len(times) - 1
+        else:
+            w = (time - times[i]) / (times[i + 1] - times[i])
+            row = k[i] + w * (k[i + 1] - k[i])
+        return DevicePose(row[1:4].copy(), self._R[i], float(row[8]), float(time))
 
 
 class ScriptedDevice:

@@ -21,7 +21,7 @@ force.
 
 Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
 scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
-whatever else runs; it sleeps between ticks (spinning only the last 0.15 ms), so it takes a
+whatever else runs; it sleeps between ticks (spinning only the last SPIN s), so it takes a
 fraction of a core. Refused, it runs at normal priority (the log says which).
 
 Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; the loop also ends
@@ -48,6 +48,7 @@ from .instrument import DevicePose
 from .lcp import MAX_CONTACTS, MAX_JAWS, MAX_SWEEPS, TOLERANCE, HapticProblem
 
 HEADER = 3                     # int64: sequence, payload length, CRC-32
+SPIN = 6e-5                    # s: a tick spins this long before its deadline (the rest it sleeps)
 
 
 class TornRead(TissueError):
@@ -183,10 +184,11 @@ class _Config:
 
 
 def _sleep_until(deadline: float) -> None:
-    """Sleep to ~0.15 ms before the deadline, then spin (the scheduler wakes a sleeper 50-100 µs late)."""
+    """Sleep to SPIN s before the deadline, then spin (the scheduler wakes a sleeper late: tens of
+    µs at real-time priority; at normal priority on a loaded machine, a time slice of others)."""
     left = deadline - time.perf_counter()
-    if left > 2e-4:
-        time.sleep(left - 1.5e-4)
+    if left > SPIN:
+        time.sleep(left - SPIN)
     while time.perf_counter() < deadline:
         pass
 
@@ -366,9 +368,12 @@ class HapticLoop:
         got = self.poses.read()
         if got is None and self.poses.sequence == 0:
             return self.device.read(0.0)
-        while got is None:                  # (a tick writes 16 values: busy for a microsecond)
+        for _ in range(100):                # (a tick writes 16 values: busy for a microsecond)
+            if got is not None:
+                return unpack_pose(got[1])
             got = self.poses.read()
-        return unpack_pose(got[1])
+        self._alive()                       # a loop that died mid-write: raise; else it is too busy
+        raise TissueError("haptic loop: the device's pose stayed busy through 100,000 reads")
 
     def _alive(self) -> None:
         if self.process is None:
