@@ -28,7 +28,8 @@ Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; th
 when its parent process is gone (its parent id changes: checked every tick), and when no problem
 has come for `idle_timeout` s. A loop that died is reported by the simulation's next `publish` as
 a TissueError. The loop writes its log (every tick: clock, period, force, grip, contact force,
-sweeps, residual, step, solve time) to `log_path` as it ends, however it ends but SIGKILL.
+sweeps, residual, step, solve time; and its CPU and wall seconds) to `log_path` as it ends,
+however it ends but SIGKILL.
 """
 
 from __future__ import annotations
@@ -214,6 +215,7 @@ def _run(config: _Config, epoch, ready, stop) -> None:
     log = np.full((config.max_ticks, len(LOG_COLUMNS)), np.nan)
     ticks, loaded, reason = 0, -1, "stopped"
     ready.set()
+    cpu, wall = time.process_time(), time.perf_counter()
     try:
         while epoch.value == 0.0 and not stop.is_set():
             time.sleep(1e-3)
@@ -263,7 +265,8 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             extra["device_forces"] = device.forces()
         if config.log_path:
             np.savez(config.log_path, log=kept, columns=np.array(LOG_COLUMNS), ticks=ticks, reason=reason,
-                     retries=problems.retries, priority=priority, **extra)
+                     retries=problems.retries, priority=priority, cpu_seconds=time.process_time() - cpu,
+                     wall_seconds=time.perf_counter() - wall, **extra)
         if hasattr(device, "close"):
             device.close()
         problems.close()
