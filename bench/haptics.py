@@ -143,11 +143,12 @@ def band(rows_wanted, overrides, figure=None):
             log = loop.log
             tmp.cleanup()
             loops[kind].append((log["log"], end))
-            cpu = notes.get(kind, {}).get("cpu_seconds", 0.0) + float(log["cpu_seconds"])
-            wall = notes.get(kind, {}).get("wall_seconds", 0.0) + float(log["wall_seconds"])
+            before = notes.get(kind, {})
+            cpu = before.get("cpu_seconds", 0.0) + float(log["cpu_seconds"])
+            wall = before.get("wall_seconds", 0.0) + float(log["wall_seconds"])
             notes[kind] = {"priority": str(log["priority"]), "exit": str(log["reason"]), "cpu_seconds": cpu,
-                           "wall_seconds": wall, "cpu_fraction_of_a_core": cpu / wall}
-            notes[kind]["torn_read_retries"] = notes[kind].get("torn_read_retries", 0) + int(log["retries"])
+                           "wall_seconds": wall, "cpu_fraction_of_a_core": cpu / wall,
+                           "torn_read_retries": before.get("torn_read_retries", 0) + int(log["retries"])}
             if round_ == 0 and kind == "realtime":
                 first = (records, problems, log["log"], end)
     records, problems, ticks, end = first
