@@ -10,6 +10,11 @@
                   attachments (bilateral) are eliminated first by a Schur complement
   5. correction   x = x_free + R h A₀⁻¹ (H R)ᵀ λ, v = v_free + (x - x_free) / h
 
+Instruments (tissue.haptics): a jaw coupled to a haptic device is one more rigid obstacle for
+detection and one more body of one node for steps 2-5 (its blocks of H are minus the row
+directions, its compliance h A_hap⁻¹ I₃, its correction a translation); its free motion toward
+the device's pose opens the stage.
+
 Kernel launches per step (warped): one detection launch per body (plus one per further body pair
 with three or more bodies), one for W's factors and one for the correction per touched body, one
 for the Gauss-Seidel; everything between them is a few dozen numpy operations on arrays of contacts.
