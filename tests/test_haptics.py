@@ -22,7 +22,7 @@ E, SIDE, HEIGHT = 1e4, 0.05, 0.05          # the block of the closed-form test
 K_HAP = 500.0
 
 
-def block_under_plate(depth=0.004, ramp=0.2, friction=0.0, cells=(3, 3, 3), dt=0.01):
+def block_under_plate(depth=0.004, ramp=0.2, friction=0.0, cells=(3, 3, 3), dt=0.01, compliance="warped"):
     """A block (E 1e4, ν 0, no gravity) on a clamped base, pressed by a rigid plate (a probe
     coupled with K 500 N/m) whose device goes `depth` below the block's top over `ramp` s."""
     from tissue.contact.obstacles import Box
@@ -40,8 +40,8 @@ def block_under_plate(depth=0.004, ramp=0.2, friction=0.0, cells=(3, 3, 3), dt=0
     plate = probe([Box((0.0, 0.0, 0.005), (0.04, 0.04, 0.005))], Coupling(mass=0.01, damping=5.0, stiffness=K_HAP),
                   friction=friction)
     plate.device = Trajectory([[0.0, 0.0, 0.0, HEIGHT + 5e-4, 0.0], [ramp, 0.0, 0.0, HEIGHT - depth, 0.0]])
-    stage = ContactStage([solver], [], Contact(friction=friction, distance=2e-3, tolerance=1e-9, max_iterations=500),
-                         instruments=[plate])
+    stage = ContactStage([solver], [], Contact(friction=friction, distance=2e-3, tolerance=1e-9, max_iterations=500,
+                                               compliance=compliance), instruments=[plate])
     return solver, stage, plate
 
 
@@ -160,6 +160,15 @@ def test_probe_force_converges_to_the_series_springs(backend):
     f = haptic.solve(pose.position, pose.orientation, pose.jaw)
     assert f.force[2] == pytest.approx(expected, rel=1e-3)
     assert f.contact[2] == pytest.approx(expected, rel=1e-3)   # the block pushes the plate up
+
+
+def test_probe_with_exact_compliance_reaches_the_same_rest(backend):
+    """The jaw in the exact-compliance path (sparse LU of the block's matrix each step) too: the
+    plate at rest feels the same closed-form 1 N."""
+    solver, stage, plate = block_under_plate(depth=0.004, compliance="exact")
+    run(solver, stage, 70)
+    k_block = E * SIDE * SIDE / HEIGHT
+    assert plate.coupling_force()[2] == pytest.approx(0.004 * K_HAP * k_block / (K_HAP + k_block), rel=1e-3)
 
 
 def test_force_is_continuous_across_steps(backend):
