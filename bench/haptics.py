@@ -7,13 +7,14 @@ and alarm distance set to reach them), the scene runs in real time (a step start
 reaches it; 40 ms steps) alone, with the haptic loop in its own process at 1 kHz (a scripted device
 on the scene's path; after each step the simulation publishes the restricted problem) at normal
 priority, and with the loop at real-time priority (SCHED_FIFO, when allowed), the three
-alternated ROUNDS times (this shared machine's load drifts from minute to minute). Reported: the loop's achieved rate and its tick periods (median, p99, max) while the
-simulation ran, the re-solve's time inside the loop (Python included) and alone on the same
-problems, the restricted problems' size, and the simulation's step time (median) without and with
-the loop, and the publish's own time, and the loop's CPU time (the share of a core it takes from
-the simulation and everything else: on this shared machine the step times of consecutive runs
-differ by more than the loop could cost). The 150-row band's first real-time-priority run gives figures/haptics_force.png:
-the force the device renders at the simulation's rate (held) and at the loop's.
+alternated ROUNDS times (this shared machine's load drifts from minute to minute). Reported: the
+loop's achieved rate and its tick periods (median, p99, max) while the simulation ran, the
+re-solve's time inside the loop (Python included) and alone on the same problems, the restricted
+problems' size, the simulation's step time (median) without and with the loop, the publish's own
+time, and the loop's CPU time (the share of a core it takes from the simulation and everything
+else: on this shared machine the step times of consecutive runs differ by more than the loop
+could cost). The 150-row band's first real-time-priority run gives figures/haptics_force.png: the
+force the device renders at the simulation's rate (held) and at the loop's.
 
     python -m bench.haptics            # all three bands (~7 min on 2 cores)
     python -m bench.haptics --quick    # the 150-row band only
@@ -209,9 +210,12 @@ def main(argv=None) -> int:
         for kind, lp in r["loops"].items():
             print(f"    loop {lp['priority']}: {lp['rate_hz']:.0f} Hz, period median {lp['period_ms']['median']:.3f} "
                   f"p99 {lp['period_ms']['p99']:.3f} max {lp['period_ms']['max']:.2f} ms "
-                  f"({lp['period_ms']['over_3ms_count']} over 3 ms), {100 * lp['cpu_fraction_of_a_core']:.0f} % of a core; re-solve {lp['resolve_us_in_loop']['median']:.0f} µs "
+                  f"({lp['period_ms']['over_3ms_count']} over 3 ms), "
+                  f"{100 * lp['cpu_fraction_of_a_core']:.0f} % of a core; "
+                  f"re-solve {lp['resolve_us_in_loop']['median']:.0f} µs "
                   f"(p99 {lp['resolve_us_in_loop']['p99']:.0f}), sweeps {lp['sweeps_median']:.0f}/{lp['sweeps_max']}; "
-                  f"step {st[kind]['median']:.2f} ms ({st[kind]['ratio_to_alone']:.2f}×; rounds {st[kind]['per_round_median']})")
+                  f"step {st[kind]['median']:.2f} ms ({st[kind]['ratio_to_alone']:.2f}×; "
+                  f"rounds {st[kind]['per_round_median']})")
     write_results("haptics", results)
     return 0
 

@@ -25,15 +25,16 @@ def _path() -> tuple[float, ...]:
 
 @dataclass
 class LiverGrasp(Scene):
-    """The liver's left lobe grasped, pulled against the stomach and ribs, and released; the forces a haptic device renders.
+    """The liver grasped by a haptic device's grasper, pulled against stomach and ribs, released.
 
     The liver and stomach of `liver_press` (co-rotational, E = 3 and 4 kPa, ν = 0.45), the same 20
-    rib capsules. A grasper (two jaws, rounded bars 2.4 cm long, 8 mm thick, closing along z) follows a scripted
-    device through a virtual coupling (M 5 g, B 2 N·s/m, K 300 N/m; μ 0.8 on the jaws): it closes
-    on the lobe's tip, pulls it 3.2 cm toward the stomach, holds, opens and withdraws. The jaws'
-    compliance h A_hap⁻¹ enters W as the paper's §3.6 says. The haptics stage writes forces.png: the
-    force the device renders at the simulation's rate (held between 40 ms steps) and at 1 kHz (the
-    haptic loop's re-solve of each step's problem for the device's pose between steps).
+    rib capsules. A grasper (two jaws, rounded bars 2.4 cm long, 8 mm thick, closing along z)
+    follows a scripted device through a virtual coupling (M 5 g, B 2 N·s/m, K 300 N/m; μ 0.8 on
+    the jaws): it closes on the lobe's tip, pulls it 3.2 cm toward the stomach, holds, opens and
+    withdraws. The jaws' compliance h A_hap⁻¹ enters W as the paper's §3.6 says. The haptics
+    stage writes forces.png: the force the device renders at the simulation's rate (held between
+    40 ms steps) and at 1 kHz (the haptic loop's re-solve of each step's problem for the device's
+    pose between steps).
     """
 
     dt: float = 0.04
@@ -46,8 +47,9 @@ class LiverGrasp(Scene):
         fixed=Fixed(region=(0.0, 1.0, 0.45, 1.0, 0.0, 1.0))))
     ribs: Obstacle = field(default_factory=lambda: Obstacle(shape="capsules", radius=0.006, segments=rib_segments(),
                                                             color="#e4d8bd"))
-    grasper: Tool = field(default_factory=lambda: Tool(kind="grasper", keyframes=_path(), jaw_length=0.024, radius=0.004,
-                                                       mass=0.005, damping=2.0, stiffness=300.0, friction=0.8))
+    grasper: Tool = field(default_factory=lambda: Tool(
+        kind="grasper", keyframes=_path(), jaw_length=0.024, radius=0.004, mass=0.005, damping=2.0, stiffness=300.0,
+        friction=0.8))
     contact: Contact = field(default_factory=lambda: Contact(
         friction=0.3, distance=3e-3, compliance="warped", tolerance=1e-6, max_iterations=100, sampling="faces"))
     haptics: Haptics = field(default_factory=Haptics)

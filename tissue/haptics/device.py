@@ -52,7 +52,8 @@ def matrix_to_quaternion(R) -> np.ndarray:
     R = np.asarray(R, dtype=np.float64)
     w = np.sqrt(max(0.0, 1.0 + np.trace(R))) / 2.0
     if w > 1e-6:
-        return np.array([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)])
+        v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
+        return np.r_[w, v]
     i = int(np.argmax(np.diagonal(R)))
     j, k = (i + 1) % 3, (i + 2) % 3
     s = np.sqrt(max(0.0, 1.0 + R[i, i] - R[j, j] - R[k, k])) * 2.0

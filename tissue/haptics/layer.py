@@ -37,10 +37,10 @@ class Tool(Options):
     """An instrument held by a scripted device (tissue.haptics.instrument).
 
     kind: 'grasper' (two jaws `jaw` apart along the tool's z, each a rounded bar: a capsule of
-    `radius` and `jaw_length` along the tool's x) or 'probe' (a sphere of `radius`). keyframes: (t, x, y, z, jaw opening)
-    per key, the device's path, interpolated linearly; orientation: the tool's axes (degrees about
-    x, y, z). mass (kg), damping (N·s/m), stiffness (N/m): the virtual coupling. friction: Coulomb
-    μ of contacts on the jaws (None: the Contact's).
+    `radius` and `jaw_length` along the tool's x) or 'probe' (a sphere of `radius`).
+    keyframes: (t, x, y, z, jaw opening) per key, the device's path, interpolated linearly;
+    orientation: the tool's axes (degrees about x, y, z). mass (kg), damping (N·s/m), stiffness
+    (N/m): the virtual coupling. friction: Coulomb μ of contacts on the jaws (None: the Contact's).
     """
 
     kind: Literal["grasper", "probe"] = "grasper"
@@ -78,7 +78,8 @@ class Tool(Options):
         coupling = Coupling(self.mass, self.damping, self.stiffness)
         if self.kind == "grasper":
             half = 0.5 * self.jaw_length
-            instrument = grasper([Capsule((-half, 0.0, 0.0), (half, 0.0, 0.0), self.radius)], coupling, axis=(0.0, 0.0, 1.0),
+            jaw = Capsule((-half, 0.0, 0.0), (half, 0.0, 0.0), self.radius)
+            instrument = grasper([jaw], coupling, axis=(0.0, 0.0, 1.0),
                                  friction=self.friction, name=name)
         else:
             instrument = probe([Sphere((0.0, 0.0, 0.0), self.radius)], coupling, friction=self.friction, name=name)

@@ -17,7 +17,8 @@ as a first-order prediction of the next step from the velocities after this one,
 at a step boundary jump more, not less, on a probe pressed into a block: measured, dropped.) Projected Gauss-Seidel with
 Coulomb friction (the contact stage's exact 3×3 local solve) from the last λ, at most
 `max_sweeps` sweeps: a bounded time per tick. The jaw then sits at
-xⱼ' = xⱼ⁺ + gⱼ Δⱼ + h A⁻¹ Jⱼᵀ (λ' - λ) and the device renders the springs' force Σ K (xⱼ' - x_dⱼ').
+xⱼ' = xⱼ⁺ + gⱼ Δⱼ + h A⁻¹ Jⱼᵀ (λ' - λ) and the device renders the springs' force
+Σ K (xⱼ' - x_dⱼ').
 
 Compiled once: one Taichi kernel over numpy buffers of a fixed capacity (the problem's size is a
 number in the buffers, not an argument), launched by replaying its recorded context

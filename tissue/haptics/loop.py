@@ -309,7 +309,8 @@ class HapticLoop:
         self.poses = SharedRecord(32)
         self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
         config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
-                         self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks, self.realtime)
+                         self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks,
+                         self.realtime)
         self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
                                    name="tissue-haptics", daemon=True)
         self.process.start()
