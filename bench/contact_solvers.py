@@ -35,9 +35,9 @@ from bench.contact_problems import PROBLEMS, load
 TOL = 1e-6
 SOLVERS = {"gauss_seidel": dict(method="gauss_seidel", anderson=0), "gs_anderson": dict(method="gauss_seidel"),
            "newton": dict(method="newton"), "auto": dict(method="auto")}
-CAPS = {"gauss_seidel": [2 ** k for k in range(12)], "gs_anderson": [2 ** k for k in range(12)],
-        "newton": list(range(1, 16)) + [20, 30], "auto": [1, 4, 16, 32, 33, 34, 35, 36, 38, 40, 44, 48, 56, 64]}
-MAX_ITERATIONS = {"gauss_seidel": 4096, "gs_anderson": 4096, "newton": 200, "auto": 300}
+CAPS = {"gauss_seidel": [2 ** k for k in range(11)], "gs_anderson": [2 ** k for k in range(11)],
+        "newton": list(range(1, 16)) + [20, 30], "auto": [1, 4, 16, 17, 18, 19, 20, 22, 24, 28, 32, 40, 48, 64, 80]}
+MAX_ITERATIONS = {"gauss_seidel": 1024, "gs_anderson": 1024, "newton": 200, "auto": 300}
 REPEATS = 3
 BUDGET_S = 8.0           # a curve stops at the first cap whose solve takes longer than this
 

@@ -20,9 +20,9 @@ the norm over all 3n components; it is zero exactly at a solution. (Siconos divi
 the 1 + keeps it defined for q = 0.)
 
 Methods:
-  * "auto" (the contact stage's default): Gauss-Seidel below while it makes progress (chunks of
-    AUTO_CHUNK sweeps, each at least halving the residual, AUTO_SWEEPS at most), then "newton"
-    from where it stopped. Warm-started problems of a few hundred rows mostly end within the
+  * "auto" (the contact stage's default): Gauss-Seidel below while it makes progress (launches
+    of AUTO_PHASES sweeps, each only if the one before at least halved the residual), then
+    "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
     sweeps, at microseconds each; the rest (many strongly coupled contacts, more rows than the
     dofs they move: the press plate's 2,166 rows, where a sweep gains ~1 % of the residual) end in
     a few Newton steps (bench/contact_solvers.py).
@@ -87,8 +87,8 @@ ANDERSON_RESTARTS = 10    # ... rejecting a combination that starts worse than t
 JACOBI_CHECK_EVERY = 10   # Jacobi reads its residual back (a device sync) every this many iterations
 JACOBI_STALL_CHECKS = 20  # ... and halves omega after this many checks without a new best residual
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
-AUTO_SWEEPS = 64          # auto: Gauss-Seidel sweeps at most before Newton takes over,
-AUTO_CHUNK = 8            # ... run this many at a time, while each chunk at least halves the residual
+AUTO_PHASES = (16, 16, 32)  # auto: Gauss-Seidel launches (sweeps each) before Newton, each run only if the
+                            # one before at least halved the residual
 REVISIT_EVERY = 8         # Gauss-Seidel: every this many sweeps, one that visits the contacts apart too
 
 
@@ -933,17 +933,20 @@ class FrictionalContactSolver:
 
     def _auto(self, max_iterations, tol_abs):
         """Gauss-Seidel (most warm-started problems end within a few dozen sweeps, at a few µs a
-        sweep) while it makes progress: chunks of AUTO_CHUNK sweeps while each at least halves the
-        residual, AUTO_SWEEPS at most; then Newton from where it stopped (the problems whose sweeps
-        crawl: many coupled contacts, W ill-conditioned or singular)."""
-        its, last = 0, np.inf
-        while True:
-            its += self._gauss_seidel(min(AUTO_CHUNK, max_iterations - its), tol_abs)   # (0 sweeps: the residual)
-            if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:
-                return its
-            if its >= AUTO_SWEEPS or self._last_error2 > 0.25 * last:
-                return its + self._newton(max_iterations - its, tol_abs)
-            last = self._last_error2
+        sweep) while it makes progress: launches of AUTO_PHASES sweeps, each only if the one
+        before at least halved the residual; then Newton from where it stopped (the problems
+        whose sweeps crawl: many coupled contacts, W ill-conditioned or singular). The first
+        launch, 0 sweeps, reads the start's residual."""
+        its = self._gauss_seidel(0, tol_abs)
+        before = np.inf
+        for sweeps in AUTO_PHASES:
+            if self._last_error2 <= tol_abs ** 2 or its >= max_iterations or self._last_error2 > 0.25 * before:
+                break
+            before = self._last_error2
+            its += self._gauss_seidel(min(sweeps, max_iterations - its), tol_abs)
+        if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:
+            return its
+        return its + self._newton(max_iterations - its, tol_abs)
 
     def _newton(self, max_iterations, tol_abs):
         """Semi-smooth Newton (tissue.contact.newton) from the current r, on the host; Gauss-Seidel
