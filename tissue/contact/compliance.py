@@ -69,7 +69,7 @@ from .. import backend
 from ..errors import TissueError
 
 try:
-    from sksparse.cholmod import cholesky as _cholmod
+    from sksparse.cholmod import analyze as _cholmod
 except ImportError:          # the optional extra tissue[cholmod]; scipy's LU stands in (see above)
     _cholmod = None
 
@@ -377,6 +377,7 @@ class ExactCompliance:
         if factorization == "auto":
             factorization = "lu" if _cholmod is None else "cholmod"
         self.solver, self.assembly, self.factorization = solver, assembly, factorization
+        self._symbolic, self._pattern = None, None
         fem = solver.fem
         self.free = free_dofs(fem.n_nodes, solver.fixed_nodes)
 
@@ -396,7 +397,14 @@ class ExactCompliance:
                           rayleigh_stiffness=s.rayleigh_stiffness, rotation=fem.rotation).A
         A = A.tocsc()[self.free][:, self.free]
         if self.factorization == "cholmod":
-            self._solve = _cholmod(A)                 # A = Pᵀ L Lᵀ P, P the fill-reducing order
+            # A = Pᵀ L Lᵀ P: the fill-reducing order P and L's structure (CHOLMOD's analysis) once
+            # per sparsity pattern, which a body keeps until its topology is edited; then only
+            # the numbers each step, as SOFA's LDLᵀ does.
+            pattern = (A.indptr, A.indices)
+            if self._pattern is None or not all(np.array_equal(a, b) for a, b in zip(pattern, self._pattern)):
+                self._symbolic, self._pattern = _cholmod(A), (A.indptr.copy(), A.indices.copy())
+            self._symbolic.cholesky_inplace(A)
+            self._solve = self._symbolic
         else:
             self._solve = spla.splu(A, permc_spec="MMD_AT_PLUS_A").solve
 
