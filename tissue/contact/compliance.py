@@ -52,8 +52,10 @@ Exact. W = h H A⁻¹ Hᵀ with A the matrix of this step's free motion (assembl
 at x_prev = x_free - h v_free: the solver's own stiffness blocks, or the numpy reference),
 factorised once per step, as SOFA's sparse LDLᵀ does: A is symmetric positive definite, so a
 sparse Cholesky factorisation with a fill-reducing order (CHOLMOD, through scikit-sparse: its
-supernodal LLᵀ, AMD or METIS, whichever fills less), then one call solves A X = Hᵀ for every
-constraint column at once (X dense, the touched rows of H only). The correction reads the same X.
+supernodal LLᵀ, AMD or METIS, whichever fills less; the analysis once per sparsity pattern, the
+numbers each step), then one call solves A Z = S for every column at once: S the unit vectors of
+the dofs the rows touch (fewer than the rows: a contact's three rows share their nodes), so that
+W = h (H Z) G with Hᵀ = S G. The correction reads the same Z.
 Without scikit-sparse (an optional extra: Debian's libsuitesparse-dev, then pip install
 tissue[cholmod]) scipy's SuperLU with the MMD order of Aᵀ + A stands in (`factorization="lu"`,
 2-3× slower on the scenes' bodies; bench/contact.py measures both). This is the reference for the
