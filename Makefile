@@ -4,8 +4,8 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 # System libraries: libusb for open3d, Mesa's Vulkan driver for the GPU-backend check,
-# OSMesa/EGL for pyvista's offscreen rendering.
-SYSTEM_PACKAGES := libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libgl1 libegl1 libosmesa6 libxrender1
+# OSMesa/EGL for pyvista's offscreen rendering, SuiteSparse's headers for scikit-sparse (CHOLMOD).
+SYSTEM_PACKAGES := libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libgl1 libegl1 libosmesa6 libxrender1 libsuitesparse-dev
 
 .PHONY: setup system demo test test-all bench figures clean
 

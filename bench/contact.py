@@ -1,5 +1,6 @@
 """Contact benchmark (paper §3.7): ms per step by stage, compliance warping against the exact
-compliance (a sparse LU of the current matrix each step: the paper's "50× slower" direct way),
+compliance (a sparse Cholesky of the current matrix each step, CHOLMOD: the paper's "50× slower"
+direct way, as SOFA's LDLᵀ; and scipy's LU, its fallback without scikit-sparse, in the same run),
 and the contact-force error between the two, in one run on this machine.
 
     liver_press   scenes/liver_press.py: the 1,300-tet liver pushed by a probe into the 800-tet
@@ -11,7 +12,7 @@ and the contact-force error between the two, in one run on this machine.
                   error of the warped contact forces.
     450 rows      the same scene with the alarm distance widened to 4 mm (about 450 rows while
                   pressed): per stage, and every 4th step with ≥ 420 rows the exact W of the same
-                  rows (LU of this step's matrix, solves, H A⁻¹ Hᵀ) against W by warping, formed
+                  rows (Cholesky of this step's matrix, solves, H A⁻¹ Hᵀ; and by LU) against W by warping, formed
                   densely (the paper's kernels) and as the stage keeps it (its factors), ms and
                   ratios, and the force error there; then the run again with W formed
                   (contact.delassus=dense): the stages side by side; and the run twice more,
@@ -24,7 +25,8 @@ and the contact-force error between the two, in one run on this machine.
                   Gauss-Seidel, and by Anderson on the contacts in play alone (`reduce`):
                   natural-map residual against sweeps and against time (figures/contact_gauss_seidel.png).
     liver_floor   SOFA's contact scene of REFERENCE-TIMINGS.md: the 596-tet liver falls on a rigid
-                  floor, μ 0.5, about 28 contacts at rest (SOFA: 1.79 ms/step warped, 5.95 exact)
+                  floor, μ 0.5, about 28 contacts at rest (SOFA: 1.79 ms/step warped, 5.95 exact);
+                  warped, exact (Cholesky) and exact by LU (exact_lu)
 
     python -m bench.contact            # everything (~40 s on 2 cores)
     python -m bench.contact --quick    # liver_press warped only, and the 450-row comparison
@@ -34,6 +36,7 @@ import argparse
 import sys
 import time
 from collections import Counter
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -69,6 +72,21 @@ class LaunchCounter:
         self._kernel.__call__ = self._original
 
 
+@contextmanager
+def factorization(kind: str):
+    """ExactCompliance built inside takes `kind` ("cholmod" or "lu": scipy's LU, as without
+    scikit-sparse) for "auto"."""
+    import tissue.contact.compliance as compliance
+
+    original = compliance._cholmod
+    if kind == "lu":
+        compliance._cholmod = None
+    try:
+        yield
+    finally:
+        compliance._cholmod = original
+
+
 def press(compliance: str, overrides=()):
     from scenes.liver_press import LiverPress
     from tissue.scene import Simulation
@@ -93,13 +111,13 @@ def force_error(solve, W_warped, W_exact, rows, contacts, mu) -> dict:
             "W": float(np.linalg.norm(W_warped - W_exact) / np.linalg.norm(W_exact))}
 
 
-def exact_W(stage, rows) -> np.ndarray:
+def exact_W(stage, rows, kind: str = "auto") -> np.ndarray:
     """h H A⁻¹ Hᵀ with A the matrix of this step's free motion (the solver's own blocks)."""
     from tissue.contact.compliance import ExactCompliance
 
     W = np.zeros((rows.n_rows, rows.n_rows))
     for b in np.unique(rows.body):
-        c = ExactCompliance(stage.bodies[b].solver)
+        c = ExactCompliance(stage.bodies[b].solver, factorization=kind)
         c.factorise()
         c.prepare(rows, int(b))
         c.add_to(W)
@@ -143,9 +161,12 @@ def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int =
                     start = time.perf_counter()
                     W_exact = exact_W(stage, rows)
                     exact_ms = 1e3 * (time.perf_counter() - start)
+                    start = time.perf_counter()
+                    exact_W(stage, rows, "lu")
+                    exact_lu_ms = 1e3 * (time.perf_counter() - start)
                     W_warped, dense_ms = warped_W(stage, rows)
                     check = force_error(solve, W_warped, W_exact, rows, contacts, mu)
-                    check.update(rows=rows.n_rows, exact_ms=exact_ms, warped_dense_ms=dense_ms,
+                    check.update(rows=rows.n_rows, exact_ms=exact_ms, exact_lu_ms=exact_lu_ms, warped_dense_ms=dense_ms,
                                  warped_ms=1e3 * stage.stats.times["compliance"][-1])
                     checks.append(check)
                     if problems is not None:
@@ -369,14 +390,18 @@ def main(argv=None) -> int:
     press_results = {"warped": run_press("warped", args.steps, check_every=0 if args.quick else 8)}
     if not args.quick:
         press_results["exact"] = run_press("exact", args.steps)
+        with factorization("lu"):
+            press_results["exact_lu"] = run_press("exact", args.steps)
     out["liver_press"] = press_results
     _table("liver_press", press_results)
     if "exact" in press_results:
         w, e = press_results["warped"]["ms_per_step"], press_results["exact"]["ms_per_step"]
+        lu = press_results["exact_lu"]["ms_per_step"]
         out["liver_press"]["exact_over_warped"] = {"compliance": e["compliance"] / w["compliance"],
-                                                   "contact": e["contact"] / w["contact"]}
-        print(f"exact / warped: compliance stage {e['compliance'] / w['compliance']:.0f}x, "
-              f"contact stage {e['contact'] / w['contact']:.0f}x")
+                                                   "contact": e["contact"] / w["contact"],
+                                                   "compliance_lu": lu["compliance"] / w["compliance"]}
+        print(f"exact / warped: compliance stage {e['compliance'] / w['compliance']:.0f}x (by LU "
+              f"{lu['compliance'] / w['compliance']:.0f}x), contact stage {e['contact'] / w['contact']:.0f}x")
     if "checks" in press_results["warped"]:
         _errors(press_results["warped"]["checks"], "along the warped run")
     calls = press_results["warped"]["launches_by_kernel"]
@@ -392,7 +417,8 @@ def main(argv=None) -> int:
         print(f"\nliver_press, alarm distance {1e3 * WIDE_DISTANCE:.1f} mm: rows median {wide['rows_median']:.0f} "
               f"(max {wide['rows_max']}); total {wide['ms_per_step']['total']:.2f} ms/step, compliance "
               f"{wide['ms_per_step']['compliance']:.2f}, lcp {wide['ms_per_step']['lcp']:.2f}")
-        print(f"W at {c['rows']['median']:.0f} rows: exact {c['exact_ms']['median']:.0f} ms (LU and solves); "
+        print(f"W at {c['rows']['median']:.0f} rows: exact {c['exact_ms']['median']:.1f} ms (Cholesky and solves; "
+              f"by LU {c['exact_lu_ms']['median']:.1f}); "
               f"warped, formed densely {c['warped_dense_ms']['median']:.2f} ms: exact / warped = "
               f"{c['exact_ms']['median'] / c['warped_dense_ms']['median']:.0f}x; the stage's compliance (W's "
               f"factors) {c['warped_ms']['median']:.2f} ms: "
@@ -410,10 +436,12 @@ def main(argv=None) -> int:
     print(f"dense W / factors: compliance {d['compliance'] / f['compliance']:.2f}x, lcp {d['lcp'] / f['lcp']:.2f}x, "
           f"contact stage {d['contact'] / f['contact']:.2f}x")
     if "checks" in wide:
-        exact_ms = wide["checks"]["exact_ms"]["median"]
-        out["exact_over_warped_450_rows"] = {"factors": exact_ms / f["compliance"], "dense_W": exact_ms / d["compliance"]}
-        print(f"exact W ({exact_ms:.0f} ms) / the warped compliance stage: factors {exact_ms / f['compliance']:.0f}x, "
-              f"W formed {exact_ms / d['compliance']:.0f}x")
+        exact_ms, lu_ms = wide["checks"]["exact_ms"]["median"], wide["checks"]["exact_lu_ms"]["median"]
+        out["exact_over_warped_450_rows"] = {"factors": exact_ms / f["compliance"], "dense_W": exact_ms / d["compliance"],
+                                             "factors_lu": lu_ms / f["compliance"], "dense_W_lu": lu_ms / d["compliance"]}
+        print(f"exact W ({exact_ms:.1f} ms; by LU {lu_ms:.1f}) / the warped compliance stage: factors "
+              f"{exact_ms / f['compliance']:.0f}x (LU {lu_ms / f['compliance']:.0f}x), W formed "
+              f"{exact_ms / d['compliance']:.0f}x (LU {lu_ms / d['compliance']:.0f}x)")
 
     ab = reduce_side_by_side(72)
     out["liver_press_450_rows_in_play"] = ab
@@ -440,12 +468,17 @@ def main(argv=None) -> int:
 
     if not args.quick:
         floor = {c: run_floor(c, args.steps) for c in ("warped", "exact")}
+        with factorization("lu"):
+            floor["exact_lu"] = run_floor("exact", args.steps)
         out["liver_floor"] = floor
         _table("liver_floor", floor)
         ratio = floor["exact"]["ms_per_step"]["contact"] / floor["warped"]["ms_per_step"]["contact"]
+        ratio_lu = floor["exact_lu"]["ms_per_step"]["contact"] / floor["warped"]["ms_per_step"]["contact"]
         out["liver_floor"]["exact_over_warped_contact"] = ratio
-        print(f"contact stage: exact / warped = {ratio:.1f}x (SOFA: warped {SOFA_FLOOR_MS['warped']} ms/step "
-              f"in total, exact {SOFA_FLOOR_MS['exact']})")
+        out["liver_floor"]["exact_lu_over_warped_contact"] = ratio_lu
+        print(f"contact stage: exact / warped = {ratio:.1f}x (by LU {ratio_lu:.1f}x); total ms/step exact "
+              f"{floor['exact']['ms_per_step']['total']:.2f}, by LU {floor['exact_lu']['ms_per_step']['total']:.2f} "
+              f"(SOFA: warped {SOFA_FLOOR_MS['warped']} ms/step in total, exact {SOFA_FLOOR_MS['exact']})")
     for run in (*press_results.values(), wide, dense, *(out.get("liver_floor", {}).values())):
         if isinstance(run, dict):
             run.pop("per_step", None)

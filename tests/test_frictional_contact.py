@@ -397,7 +397,7 @@ def _bad_cases():
         (dict(W=W, q=q, mu=0.1, r0=np.full(6, np.nan)), "r0: contains non-finite"),
         (dict(W=nonpd, q=q, mu=0.1), "W: diagonal 3x3 block of contact 1 is not positive definite"),
         (dict(W=missing, q=q, mu=0.1), "W: diagonal 3x3 block of contact 0 is not positive definite"),
-        (dict(W=W, q=q, mu=0.1, method="newton"), "method: unknown value"),
+        (dict(W=W, q=q, mu=0.1, method="lemke"), "method: unknown value 'lemke'; expected one of gauss_seidel, jacobi, newton, auto"),
         (dict(W=W, q=q, mu=0.1, tol=-1.0), "tol: must be a positive number"),
     ]
 
@@ -412,3 +412,156 @@ def test_bad_input(solve, kwargs, message):
 def test_no_contacts(solve):
     r, info = solve(np.zeros((0, 0)), np.zeros(0), 0.3)
     assert r.shape == (0,) and info.converged and info.iterations == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# semi-smooth Newton (tissue.contact.newton) and "auto" (Gauss-Seidel, then Newton)
+# ----------------------------------------------------------------------------------------------
+
+def test_alart_curnier_jacobian_matches_finite_differences():
+    """dΦ = A dr + B W dr against central differences of Φ(r, W r + q), at random points off the
+    kinks (closing and separating, sticking and sliding contacts all present)."""
+    from tissue.contact.newton import _alart_curnier
+
+    rng = np.random.default_rng(11)
+    n = 40
+    W = random_delassus(n, rng)
+    r = np.column_stack([rng.uniform(-0.5, 1.5, n), rng.standard_normal((n, 2))]).ravel()
+    q = rng.standard_normal(3 * n)
+    # A third of the contacts nearly at rest tangentially with a small r_t: they stick.
+    calm = np.arange(0, n, 3)
+    r.reshape(n, 3)[calm, 0] = rng.uniform(0.5, 1.5, len(calm))
+    r.reshape(n, 3)[calm, 1:] = 0.01 * rng.standard_normal((len(calm), 2))
+    q.reshape(n, 3)[calm, 1:] = -(W @ r).reshape(n, 3)[calm, 1:] + 1e-3 * rng.standard_normal((len(calm), 2))
+    mu, rho = rng.uniform(0.3, 1.0, n), rng.uniform(0.5, 2.0, n)
+
+    def phi(r):
+        return _alart_curnier(r.reshape(n, 3), (W @ r + q).reshape(n, 3), mu, rho, jacobian=False)[0].ravel()
+
+    _, A, B = _alart_curnier(r.reshape(n, 3), (W @ r + q).reshape(n, 3), mu, rho)
+    kinds = set()
+    for k in range(5):
+        d = rng.standard_normal(3 * n)
+        eps = 1e-7
+        fd = (phi(r + eps * d) - phi(r - eps * d)) / (2 * eps)
+        jac = np.einsum("iab,ib->ia", A, d.reshape(n, 3)) + np.einsum("iab,ib->ia", B, (W @ d).reshape(n, 3))
+        np.testing.assert_allclose(jac.ravel(), fd, atol=1e-6 * np.abs(fd).max())
+    closing = (r.reshape(n, 3)[:, 0] - rho * (W @ r + q).reshape(n, 3)[:, 0]) > 0
+    stick = closing & (A[:, 1, 1] == 0)
+    assert closing.sum() > 5 and (~closing).sum() > 5 and stick.sum() > 0 and (closing & ~stick).sum() > 5
+
+
+@pytest.mark.parametrize("method", ["newton", "auto"])
+def test_newton_single_contact_closed_form(solve, method):
+    # As test_single_contact_stick_slide_separate: r_n = -q_n / w_n; stick r_t = -q_t / w_t,
+    # slide r_t = -mu r_n q_t / |q_t|; separating r = 0.
+    wn, wt, mu = 2.0, 0.5, 0.4
+    W = np.diag([wn, wt, wt])
+    rn = 1.5
+    for qt, sticks in (([0.1, -0.2], True), ([0.8, 0.6], False)):
+        qt = np.array(qt)
+        r, info = solve(W, np.r_[-wn * rn, qt], mu, tol=1e-14, method=method)
+        expect_t = -qt / wt if sticks else -mu * rn * qt / np.linalg.norm(qt)
+        np.testing.assert_allclose(r, np.r_[rn, expect_t], rtol=1e-12, atol=1e-14)
+        assert info.converged and info.method == method
+    r, info = solve(W, np.array([0.3, 5.0, -1.0]), mu, method=method)
+    assert np.all(r == 0) and info.iterations == 0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_newton_frictionless_matches_enumeration_and_qp(solve, seed):
+    rng = np.random.default_rng(100 + seed)
+    n = 2 + seed
+    W = random_delassus(n, rng)
+    q = rng.standard_normal(3 * n)
+    r, info = solve(W, q, 0.0, tol=1e-12, max_iterations=100, method="newton")
+    assert info.converged and natural_map(W, q, 0.0, r) <= 1e-12
+    Wn, qn = W[0::3, 0::3], q[0::3]
+    np.testing.assert_allclose(r[0::3], lcp_by_enumeration(Wn, qn), atol=1e-9)
+    qp = scipy.optimize.minimize(lambda x: (0.5 * x @ Wn @ x + qn @ x, Wn @ x + qn), np.zeros(n), jac=True,
+                                 method="L-BFGS-B", bounds=[(0, None)] * n,
+                                 options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000})
+    np.testing.assert_allclose(r[0::3], qp.x, atol=1e-6)
+
+
+def box_stack(boxes, h=0.01, g=9.81, mu=0.5):
+    """A column of unit boxes (mass 1) at rest on the ground, 4 corner contacts under each: 12 rows
+    per 6 dofs, W = J M⁻¹ Jᵀ singular. Returns W, q (one step of gravity), mu, J, M⁻¹, v_free."""
+    inertia = 1.0 / 12 * 2.0                              # (1² + 1²) / 12 for a unit cube
+    Minv = np.diag(np.tile(np.r_[np.ones(3), np.full(3, 1 / inertia)], boxes))
+    J = np.zeros((12 * boxes, 6 * boxes))
+    for b in range(boxes):
+        for k, (sx, sy) in enumerate(itertools.product((-0.5, 0.5), repeat=2)):
+            arm = np.array([sx, sy, -0.5])                # the corner, from the box's centre
+            F = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, 1.0, 0]])    # (normal z; tangents x, y)
+            row = 3 * (4 * b + k)
+            J[row:row + 3, 6 * b:6 * b + 6] = np.hstack([F, -F @ skew(arm)])
+            if b > 0:                                     # the box below: the same point, from its centre
+                J[row:row + 3, 6 * (b - 1):6 * b] = -np.hstack([F, -F @ skew(arm + [0, 0, 1.0])])
+    v = np.zeros(6 * boxes)
+    v[2::6] = -h * g
+    return J @ Minv @ J.T, J @ v, mu, J, Minv, v
+
+
+@pytest.mark.parametrize("method", ["newton", "auto"])
+def test_newton_rigid_stack_comes_to_rest(solve, method):
+    """A stack of 6 boxes (72 rows, 36 dofs): every box at rest after the step and the ground
+    carrying the whole weight, h m g × 6; projected Gauss-Seidel stalls on it (singular W)."""
+    h, g, boxes = 0.01, 9.81, 6
+    W, q, mu, J, Minv, v = box_stack(boxes, h, g)
+    r, info = solve(W, q, mu, tol=1e-10, max_iterations=200, method=method)
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-10
+    np.testing.assert_allclose(v + Minv @ J.T @ r, 0.0, atol=1e-8)
+    assert r[0:12:3].sum() == pytest.approx(boxes * h * g, rel=1e-8)
+    _, gs = solve(W, q, mu, tol=1e-10, max_iterations=500)
+    assert not gs.converged                               # why Newton is there
+
+
+def solvable_problem(W, mu, rng):
+    """q for which a known r* solves (W, q, mu): per contact separated (r* = 0, u_n > 0),
+    sticking (u = 0, r* inside the cone) or sliding (u_n = 0, r*_t = -mu r*_n u_t / |u_t|);
+    q = u* - W r*. (Random q are often infeasible when rows outnumber the dofs.)"""
+    n = len(mu)
+    R, U = np.zeros((n, 3)), np.zeros((n, 3))
+    kind = rng.integers(3, size=n)
+    sep, stick, slide = kind == 0, kind == 1, kind == 2
+    U[sep, 0] = rng.uniform(0.1, 1.0, sep.sum())
+    R[stick, 0] = rng.uniform(0.5, 1.5, stick.sum())
+    angle = rng.uniform(0, 2 * np.pi, n)
+    R[stick, 1:] = (0.5 * mu * R[:, 0])[stick, None] * np.column_stack([np.cos(angle), np.sin(angle)])[stick]
+    R[slide, 0] = rng.uniform(0.5, 1.5, slide.sum())
+    direction = np.column_stack([np.cos(angle), np.sin(angle)])[slide]
+    U[slide, 1:] = rng.uniform(0.1, 1.0, (slide.sum(), 1)) * direction
+    R[slide, 1:] = -(mu * R[:, 0])[slide, None] * direction
+    return U.ravel() - W @ R.ravel(), R.ravel()
+
+
+@pytest.mark.parametrize("method", ["newton", "auto"])
+def test_newton_soft_body_more_rows_than_dofs(solve, method):
+    """300 contacts on a soft body of 60 nodes (900 rows, 180 dofs: W singular), from zero and
+    warm-started from a nearby problem's solution; the residual recomputed here."""
+    rng = np.random.default_rng(7)
+    W, _, mu = soft_body_problem(300, 60, rng)
+    W /= np.mean(np.diagonal(W))                          # as the contact stage poses it
+    q, r_star = solvable_problem(W, mu, rng)
+    assert natural_map(W, q, mu, r_star) < 1e-12
+    r, info = solve(W, q, mu, tol=1e-9, max_iterations=300, method=method)
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-9
+    R, slack = r.reshape(-1, 3), 1e-9 * (1 + np.linalg.norm(q))      # (the residual's scale)
+    assert np.all(R[:, 0] >= -slack) and np.all(np.hypot(R[:, 1], R[:, 2]) <= mu * R[:, 0] + slack)
+    # Warm-started on a nearby problem, solvable for sure (the cone conditions scale: 1.05 r*).
+    r2, warm = solve(W, 1.05 * q, mu, tol=1e-9, max_iterations=300, method=method, r0=r)
+    assert warm.converged and natural_map(W, 1.05 * q, mu, r2) <= 1e-9 and warm.iterations < info.iterations
+
+
+def test_newton_factored_and_sparse_match_dense(solve):
+    """The same problem with W dense, block-sparse and as its factors: the same reactions."""
+    rng = np.random.default_rng(5)
+    Wd, Wf, q, mu = two_body_factored_problem(40, 30, rng)
+    rd, id_ = solve(Wd, q, mu, tol=1e-11, max_iterations=100, method="newton")
+    rf, if_ = solve(Wf, q, mu, tol=1e-11, max_iterations=100, method="newton")
+    rs, is_ = solve(sp.csr_matrix(Wd), q, mu, tol=1e-11, max_iterations=100, method="newton")
+    assert id_.converged and if_.converged and is_.converged
+    for r in (rd, rf, rs):
+        assert natural_map(Wd, q, mu, r) <= 1e-11
+    np.testing.assert_allclose(rf, rd, atol=1e-8 * np.abs(rd).max())

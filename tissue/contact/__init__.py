@@ -5,7 +5,8 @@ exact), the frictional contact solver, and the stage that ties them after the fr
     detection.py           proximity of surface points to obstacles and to other soft bodies
     constraints.py         H (normal, two tangents per contact; attachments) and its JDS storage
     compliance.py          W = Σ h (H R) A₀⁻¹ (H R)ᵀ by warping, or h H A⁻¹ Hᵀ exactly; the correction
-    frictional_contact.py  Coulomb friction by projected block Gauss-Seidel
+    frictional_contact.py  Coulomb friction by projected block Gauss-Seidel; the solvers' entry point
+    newton.py              ... by semi-smooth Newton on the Alart–Curnier function (many coupled contacts)
     pipeline.py            ContactStage and its settings (Contact): detection → H → W → LCP → correction, timed
     layer.py               Obstacle scene options, the Contact group in a scene, the Simulation stage
 """

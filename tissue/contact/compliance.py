@@ -50,8 +50,16 @@ every loop on one thread: the thread pool's dispatch costs more than it saves on
 
 Exact. W = h H A⁻¹ Hᵀ with A the matrix of this step's free motion (assembled where it linearised,
 at x_prev = x_free - h v_free: the solver's own stiffness blocks, or the numpy reference),
-factorised with scipy's sparse LU each step; the correction uses the same factorisation. This is
-the reference for the warping error and the paper's "direct inversion" baseline.
+factorised once per step, as SOFA's sparse LDLᵀ does: A is symmetric positive definite, so a
+sparse Cholesky factorisation with a fill-reducing order (CHOLMOD, through scikit-sparse: its
+supernodal LLᵀ, AMD or METIS, whichever fills less; the analysis once per sparsity pattern, the
+numbers each step), then one call solves A Z = S for every column at once: S the unit vectors of
+the dofs the rows touch (fewer than the rows: a contact's three rows share their nodes), so that
+W = h (H Z) G with Hᵀ = S G. The correction reads the same Z.
+Without scikit-sparse (an optional extra: Debian's libsuitesparse-dev, then pip install
+tissue[cholmod]) scipy's SuperLU with the MMD order of Aᵀ + A stands in (`factorization="lu"`,
+2-3× slower on the scenes' bodies; bench/contact.py measures both). This is the reference for the
+warping error and the paper's "direct inversion" baseline.
 """
 
 import numpy as np
@@ -61,6 +69,13 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
+
+try:
+    from sksparse.cholmod import analyze as _cholmod
+except ImportError:          # the optional extra tissue[cholmod]; scipy's LU stands in (see above)
+    _cholmod = None
+
+FACTORIZATIONS = ("auto", "cholmod", "lu")
 from ..fem.corotational import nodal_rotation
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
@@ -349,12 +364,22 @@ class WarpedCompliance:
 
 
 class ExactCompliance:
-    """One soft body's exact compliance h A⁻¹ from a sparse LU of the current matrix, each step."""
+    """One soft body's exact compliance h A⁻¹ from a sparse factorisation of the current matrix,
+    each step: CHOLMOD's Cholesky (`factorization` "cholmod"; "auto" when scikit-sparse is
+    installed) or scipy's LU ("lu")."""
 
-    def __init__(self, solver, assembly: str = "solver"):
+    def __init__(self, solver, assembly: str = "solver", factorization: str = "auto"):
         if assembly not in ("solver", "reference"):
             raise TissueError(f"assembly: unknown {assembly!r}; expected 'solver' or 'reference'")
-        self.solver, self.assembly = solver, assembly
+        if factorization not in FACTORIZATIONS:
+            raise TissueError(f"factorization: unknown {factorization!r}; expected one of {', '.join(FACTORIZATIONS)}")
+        if factorization == "cholmod" and _cholmod is None:
+            raise TissueError("factorization: 'cholmod' needs scikit-sparse (apt-get install libsuitesparse-dev, "
+                              "then pip install 'tissue[cholmod]'); 'lu' uses scipy's LU instead")
+        if factorization == "auto":
+            factorization = "lu" if _cholmod is None else "cholmod"
+        self.solver, self.assembly, self.factorization = solver, assembly, factorization
+        self._symbolic, self._pattern = None, None
         fem = solver.fem
         self.free = free_dofs(fem.n_nodes, solver.fixed_nodes)
 
@@ -372,25 +397,46 @@ class ExactCompliance:
             v = s.velocities()
             A = linearise(fem.mesh, fem.material, s.positions() - s.dt * v, v, s.dt, rayleigh_mass=s.rayleigh_mass,
                           rayleigh_stiffness=s.rayleigh_stiffness, rotation=fem.rotation).A
-        A = A.tocsr()
-        self.lu = spla.splu(A[self.free][:, self.free].tocsc(), permc_spec="MMD_AT_PLUS_A")
+        A = A.tocsc()[self.free][:, self.free]
+        if self.factorization == "cholmod":
+            # A = Pᵀ L Lᵀ P: the fill-reducing order P and L's structure (CHOLMOD's analysis) once
+            # per sparsity pattern, which a body keeps until its topology is edited; then only
+            # the numbers each step, as SOFA's LDLᵀ does.
+            pattern = (A.indptr, A.indices)
+            if self._pattern is None or not all(np.array_equal(a, b) for a, b in zip(pattern, self._pattern)):
+                self._symbolic, self._pattern = _cholmod(A), (A.indptr.copy(), A.indices.copy())
+            self._symbolic.cholesky_inplace(A)
+            self._solve = self._symbolic
+        else:
+            self._solve = spla.splu(A, permc_spec="MMD_AT_PLUS_A").solve
 
     def prepare(self, rows: ConstraintRows, body: int) -> None:
+        """Z = A⁻¹ S in one solve, for the fewer columns of Hᵀ = S G: S the unit vectors of the dofs
+        the active rows touch (G = H among them, transposed; a contact's three rows share their
+        nodes) or S = Hᵀ itself (G = I, when contacts on triangles touch more dofs than rows)."""
         H = rows.body_matrix(body, self.solver.fem.n_nodes)[:, self.free]
         self.active = np.flatnonzero(H.getnnz(axis=1))
-        self.H = H[self.active]
-        self.X = self.lu.solve(self.H.T.toarray()) if len(self.active) else np.zeros((len(self.free), 0))
+        H = H[self.active]
+        touched = np.flatnonzero(H.getnnz(axis=0))
+        if len(touched) < len(self.active):
+            S = np.zeros((len(self.free), len(touched)))
+            S[touched, np.arange(len(touched))] = 1.0
+            self.G = H[:, touched].T.toarray()
+        else:
+            S, self.G = H.T.toarray(), np.eye(len(self.active))
+        self.Z = self._solve(S) if len(self.active) else np.zeros((len(self.free), 0))
+        self.HZ = H @ self.Z
 
     def add_to(self, W: np.ndarray) -> None:
-        """W (numpy, n_rows²) += h H A⁻¹ Hᵀ."""
+        """W (numpy, n_rows²) += h H A⁻¹ Hᵀ = h (H Z) G."""
         if len(self.active):
-            W[np.ix_(self.active, self.active)] += self.solver.dt * (self.H @ self.X)
+            W[np.ix_(self.active, self.active)] += self.solver.dt * (self.HZ @ self.G)
 
     def correct(self, lam: np.ndarray) -> None:
         if not len(self.active):
             return
         s = self.solver
         dx = np.zeros(3 * s.fem.n_nodes)
-        dx[self.free] = s.dt * (self.X @ lam[self.active])
+        dx[self.free] = s.dt * (self.Z @ (self.G @ lam[self.active]))
         dx = dx.reshape(-1, 3)
         s.set_state(s.positions() + dx, s.velocities() + dx / s.dt)

@@ -1,4 +1,5 @@
-"""The discrete 3-D frictional contact problem (FCLib form) by projected block Gauss-Seidel.
+"""The discrete 3-D frictional contact problem (FCLib form): projected block Gauss-Seidel, and the
+dispatch to the other methods (`solve_frictional_contact`, `FrictionalContactSolver`).
 
 Problem (Acary et al., FCLib): n contacts, per contact the order (normal, tangent1, tangent2);
 given the Delassus matrix W (3n x 3n), the free velocity q (3n,) and friction coefficients mu (n,),
@@ -19,7 +20,15 @@ the norm over all 3n components; it is zero exactly at a solution. (Siconos divi
 the 1 + keeps it defined for q = 0.)
 
 Methods:
-  * "gauss_seidel" (default; Jean & Moreau, Duriez et al. 2006): contacts swept in order, each
+  * "auto" (the contact stage's default): Gauss-Seidel below while it makes progress (launches
+    of AUTO_PHASES sweeps, each only if the one before at least halved the residual), then
+    "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
+    sweeps, at microseconds each; the rest (many strongly coupled contacts, more rows than the
+    dofs they move: the press plate's 2,166 rows, where a sweep gains ~1 % of the residual) end in
+    a few Newton steps (bench/contact_solvers.py).
+  * "newton": semi-smooth Newton on the Alart–Curnier function (tissue.contact.newton), on the
+    host (dense LU among the closing contacts), Gauss-Seidel sweeps its fallback.
+  * "gauss_seidel" (the API's default; Jean & Moreau, Duriez et al. 2006): contacts swept in order, each
     contact's 3x3 problem solved exactly with the others' reactions fixed (see `_local_solve`).
     The sweep is sequential by nature, so the whole iteration loop runs serially inside ONE Taichi
     kernel (a launch costs more than a sweep of a few hundred contacts). A sweep reads W once
@@ -67,8 +76,9 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
+from . import newton
 
-METHODS = ("gauss_seidel", "jacobi")
+METHODS = ("gauss_seidel", "jacobi", "newton", "auto")
 LAYOUTS = ("auto", "dense", "csr")
 # A sparse W goes to block-CSR when it has at least this many rows and at most this fill.
 CSR_MIN_ROWS, CSR_MAX_FILL = 600, 0.2
@@ -77,6 +87,8 @@ ANDERSON_RESTARTS = 10    # ... rejecting a combination that starts worse than t
 JACOBI_CHECK_EVERY = 10   # Jacobi reads its residual back (a device sync) every this many iterations
 JACOBI_STALL_CHECKS = 20  # ... and halves omega after this many checks without a new best residual
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
+AUTO_PHASES = (16, 16, 32)  # auto: Gauss-Seidel launches (sweeps each) before Newton, each run only if the
+                            # one before at least halved the residual
 REVISIT_EVERY = 8         # Gauss-Seidel: every this many sweeps, one that visits the contacts apart too
 
 
@@ -206,13 +218,15 @@ class FactoredDelassus:
         for s in np.unique(seg):
             on = seg == s
             nodes, at = np.unique(col[on], return_inverse=True)          # block columns used
-            P = np.zeros((k, len(nodes), 3, 3))
-            np.add.at(P, (row[on], at), self.blocks[e[on]])
-            P = P.transpose(0, 2, 1, 3).reshape(3 * k, 3 * len(nodes))
+            # P sparse (a contact's blocks touch a few nodes): P Q Pᵀ costs nnz(P) × |nodes|, not k × |nodes|².
+            ii = np.broadcast_to((3 * row[on])[:, None, None] + np.arange(3)[:, None], (on.sum(), 3, 3))
+            jj = np.broadcast_to((3 * at)[:, None, None] + np.arange(3), (on.sum(), 3, 3))
+            P = sp.csr_matrix((self.blocks[e[on]].ravel(), (ii.ravel(), jj.ravel())), shape=(3 * k, 3 * len(nodes)))
             y0, d = self.y_offset[s], self.y_offset[s + 1] - self.y_offset[s]
             dofs = (nodes[:, None] - y0 + np.arange(3)).ravel()
             Q = self.Q[self.q_offset[s]:self.q_offset[s] + d * d].reshape(d, d)[np.ix_(dofs, dofs)]
-            W += P @ Q @ P.T
+            PQ = P @ Q
+            W += (P @ PQ.T).T
         return self.scale * W
 
     def toarray(self) -> np.ndarray:
@@ -684,6 +698,11 @@ def _array(shape, dtype):
     return ti.ndarray(dtype=dtype, shape=shape)
 
 
+def _dofs(contacts):
+    """The rows 3i, 3i + 1, 3i + 2 of each contact i."""
+    return (3 * np.asarray(contacts)[:, None] + np.arange(3)).ravel()
+
+
 def _diagonal_blocks(W, n):
     if sp.issparse(W):
         B = sp.bsr_matrix(W, blocksize=(3, 3))
@@ -747,9 +766,9 @@ class FrictionalContactSolver:
             if len(bad):
                 raise TissueError(f"W: diagonal 3x3 block of contact {bad[0]} is not positive definite"
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
-        self.n, self.W, self.mu, self.method = n, W, mu, method
-        self.anderson = int(anderson) if method == "gauss_seidel" else 0
-        self.reduce = bool(reduce) and method == "gauss_seidel"
+        self.n, self.W, self.mu, self.method, self._D_host = n, W, mu, method, D
+        self.anderson = int(anderson) if method != "jacobi" else 0
+        self.reduce = bool(reduce) and method in ("gauss_seidel", "auto")
         dense = layout == "dense" or (layout == "auto" and (
             not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
         self.layout = FACTORED if factored else (DENSE if dense else CSR)
@@ -842,12 +861,13 @@ class FrictionalContactSolver:
         # Start inside the cones: Jacobi's relaxation keeps r where it starts.
         self._r.from_numpy(project_cone(r0.reshape(-1, 3), self.mu).ravel().astype(self._npr))
         tol_abs = tol * (1.0 + np.linalg.norm(q))
-        run = self._gauss_seidel if self.method == "gauss_seidel" else self._jacobi
+        run = {"gauss_seidel": self._gauss_seidel, "jacobi": self._jacobi, "newton": self._newton,
+               "auto": self._auto}[self.method]
         iterations = run(max_iterations, tol_abs)
         backend.sync()
         r = self._r.to_numpy().astype(np.float64)
         elapsed = time.perf_counter() - t0
-        if self.method == "gauss_seidel" and self._npr == np.float64:
+        if self.method != "jacobi" and self._npr == np.float64:
             # The kernel's own error and u of the returned r (the same formulas, in float64).
             residual = float(np.sqrt(self._last_error2)) / (1.0 + float(np.linalg.norm(q)))
             self.u = self._u.to_numpy()
@@ -898,8 +918,8 @@ class FrictionalContactSolver:
                 return its + self._sweeps(max_iterations - its, tol_abs)
             play |= new
             idx = np.flatnonzero(play)
-            dofs = (3 * idx[:, None] + np.arange(3)).ravel()
-            sub = FrictionalContactSolver(self._restricted(idx, dofs), self.mu[idx], layout="dense", check=False,
+            dofs = _dofs(idx)
+            sub = FrictionalContactSolver(self._block(idx, idx), self.mu[idx], layout="dense", check=False,
                                           anderson=self.anderson, reduce=False)
             r_play, info = sub.solve(q[dofs], tol_abs / (1.0 + np.linalg.norm(q[dofs])), max_iterations - its,
                                      r[dofs])
@@ -911,13 +931,49 @@ class FrictionalContactSolver:
         self._last_error2 = error2
         return its
 
-    def _restricted(self, contacts, dofs) -> np.ndarray:
-        """W among `contacts` (their `dofs`), dense."""
+    def _auto(self, max_iterations, tol_abs):
+        """Gauss-Seidel (most warm-started problems end within a few dozen sweeps, at a few µs a
+        sweep) while it makes progress: launches of AUTO_PHASES sweeps, each only if the one
+        before at least halved the residual; then Newton from where it stopped (the problems
+        whose sweeps crawl: many coupled contacts, W ill-conditioned or singular). The first
+        launch, 0 sweeps, reads the start's residual."""
+        its = self._gauss_seidel(0, tol_abs)
+        before = np.inf
+        for sweeps in AUTO_PHASES:
+            if self._last_error2 <= tol_abs ** 2 or its >= max_iterations or self._last_error2 > 0.25 * before:
+                break
+            before = self._last_error2
+            its += self._gauss_seidel(min(sweeps, max_iterations - its), tol_abs)
+        if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:
+            return its
+        return its + self._newton(max_iterations - its, tol_abs)
+
+    def _newton(self, max_iterations, tol_abs):
+        """Semi-smooth Newton (tissue.contact.newton) from the current r, on the host; Gauss-Seidel
+        sweeps (this solver's kernel, with Anderson) are its fallback when a line search fails."""
+        def fallback(r, sweeps):
+            self._r.from_numpy(r.astype(self._npr))
+            done = self._sweeps(sweeps, tol_abs) if sweeps else 0
+            return self._r.to_numpy().astype(np.float64), done
+
+        r, u, its, err2 = newton.solve(self.W, self._block, self._q_host, self.mu, self._D_host,
+                                       self._r.to_numpy().astype(np.float64), tol_abs, max_iterations, fallback,
+                                       lambda r, u: _error2_numpy(r, u, self.mu))
+        self._r.from_numpy(r.astype(self._npr))
+        self._u.from_numpy(u.astype(self._npr))
+        self._last_error2 = err2
+        return its
+
+    def _block(self, rows, cols) -> np.ndarray:
+        """W between contacts `rows` and `cols` (ids), dense."""
         if self.layout == FACTORED:
-            return self.W.restricted(contacts)
+            if rows is cols:
+                return self.W.restricted(rows)
+            return self.W.restricted(np.r_[rows, cols])[:3 * len(rows), 3 * len(rows):]
+        r, c = _dofs(rows), _dofs(cols)
         if sp.issparse(self.W):                     # (also a small sparse W held densely)
-            return self.W[dofs][:, dofs].toarray()
-        return self.W[np.ix_(dofs, dofs)]
+            return self.W[r][:, c].toarray()
+        return self.W[np.ix_(r, c)]
 
     def _jacobi(self, max_iterations, tol_abs):
         omega, best = self.omega, np.inf
@@ -959,7 +1015,9 @@ def solve_frictional_contact(W, q, mu, tol: float = 1e-6, max_iterations: int = 
     W: (3n, 3n) Delassus matrix, dense or scipy sparse; q: (3n,) free velocity; mu: scalar or (n,);
     per contact the order is (normal, tangent1, tangent2). Stops when the natural-map residual
     ||r - P_K(r - û)|| / (1 + ||q||) is <= tol or after max_iterations sweeps; r0 warm-starts.
-    method: "gauss_seidel" (serial, fast convergence) or "jacobi" (parallel, slower convergence).
+    method: "gauss_seidel" (serial sweeps), "jacobi" (parallel, slower convergence), "newton"
+    (semi-smooth Newton, for many coupled contacts) or "auto" (Gauss-Seidel, then Newton if the
+    sweeps stall; the contact stage's default).
     layout: "auto" | "dense" | "csr" storage of W on the device (auto: block-CSR for a large sparse W).
     anderson: Gauss-Seidel's Anderson acceleration window (0: plain projected sweeps).
     reduce: Gauss-Seidel on the contacts in play (pushed or touching) alone, W among them formed:

@@ -5,7 +5,8 @@
   3. compliance   nodal rotations and W = Σ h (H R) A₀⁻¹ (H R)ᵀ ("warped"), kept as its factors
                   (FactoredDelassus: each body's H R and A₀⁻¹ among the nodes its rows touch; W is
                   formed only when asked for, or with attachments), or h H A⁻¹ Hᵀ ("exact")
-  4. lcp          Coulomb friction by projected block Gauss-Seidel (tissue.contact.frictional_contact),
+  4. lcp          Coulomb friction by projected block Gauss-Seidel, then semi-smooth Newton where
+                  the sweeps stall (tissue.contact.frictional_contact, method "auto"),
                   warm-started from the previous step's reactions matched by contact identity;
                   attachments (bilateral) are eliminated first by a Schur complement
   5. correction   x = x_free + R h A₀⁻¹ (H R)ᵀ λ, v = v_free + (x - x_free) / h
@@ -61,9 +62,10 @@ class Contact(Options):
 
     friction: Coulomb μ where neither the obstacle nor the body says; distance: alarm distance (m),
     surface points closer than this are constrained; compliance: 'warped' (precomputed A₀⁻¹ and
-    nodal rotations, the paper's) or 'exact' (a sparse LU per step); tolerance (m, on the solver's
-    residual, see above) and max_iterations (sweeps per step): the stopping rule; method:
-    'gauss_seidel' or 'jacobi' (parallel, slower to converge); soft_soft: detect contacts between
+    nodal rotations, the paper's) or 'exact' (a sparse Cholesky per step); tolerance (m, on the
+    solver's residual, see above) and max_iterations (sweeps and Newton steps per step): the
+    stopping rule; method: 'auto' (Gauss-Seidel, then semi-smooth Newton where the sweeps stall),
+    'gauss_seidel', 'newton' or 'jacobi' (parallel, slower to converge); soft_soft: detect contacts between
     soft bodies; sampling: the contact points of each surface ('vertices'; 'edges' and 'faces' add
     edge midpoints and centroids, for obstacles thinner than the mesh spacing); delassus: how the
     warped W is kept, as its factors (per body H R and A₀⁻¹ on the touched nodes), formed
@@ -75,7 +77,7 @@ class Contact(Options):
     compliance: Literal["warped", "exact"] = "warped"
     tolerance: float = 1e-6
     max_iterations: int = 100
-    method: Literal["gauss_seidel", "jacobi"] = "gauss_seidel"
+    method: Literal["auto", "gauss_seidel", "newton", "jacobi"] = "auto"
     soft_soft: bool = True
     sampling: Literal["vertices", "edges", "faces"] = "vertices"
     delassus: Literal["auto", "factored", "dense"] = "auto"
