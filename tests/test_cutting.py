@@ -239,3 +239,43 @@ def test_cut_mesh_written_to_vtu_reads_back(backend, tmp_path):
     assert back.n_tets == model.n_elements and back.n_points == model.n_nodes
     np.testing.assert_array_equal(back.tets, mesh.tets)
     np.testing.assert_allclose(back.volumes, model.volumes, rtol=1e-12)
+
+
+@pytest.mark.parametrize("compliance", ["warped", "exact"])
+def test_cutting_a_block_resting_in_contact(backend, compliance):
+    """A soft block resting on a plane is cut in two while in contact: after every step no
+    constraint row names a node outside the body or off its current surface, nothing is NaN, the
+    block does not sink into the plane, and once settled the two halves' contact forces carry the
+    whole weight. Warped: the contact stage reads A₀⁻¹ from the cutting compliance (lazy)."""
+    from test_contact import G, block, make_solver, on_plane
+
+    from tissue.cutting import CuttingCompliance
+    from tissue.fem.model import DETACHED
+
+    solver = make_solver(block(), dt=0.01, rayleigh_mass=1.0, rayleigh_stiffness=0.01, cg_tolerance=1e-10)
+    stage = on_plane(solver, friction=0.5, compliance=compliance, tolerance=1e-10)
+    cutting = CuttingCompliance(solver.model, 0.01, 1.0, 0.01, fold_rank=200)
+    if compliance == "warped":
+        stage.follow_compliance(0, cutting)
+    cutter = Cutter(solver.model, solver, cutting)
+    path = CutPath(points=[[0.012, -0.07, 0.1], [0.014, 0.07, 0.1]], direction=[0, 0, -1], depth=0.2)
+    weight = solver.model.mass.sum() * G
+    for step in range(60):
+        solver.step()
+        result = stage.step()
+        if 10 <= step < 16:
+            cutter.cut(path.sweep(path.length * (step - 10) / 6, path.length * (step - 9) / 6))
+        rows = result.rows
+        assert rows is not None and rows.n_contacts > 0
+        nodes = result.contacts.nodes.reshape(-1)
+        assert nodes.max() < solver.model.n_nodes and (solver.model.held[nodes] != DETACHED).all()
+        surface = np.unique(stage.detector.faces[0])
+        assert np.isin(nodes, surface).all()
+        x = solver.positions()
+        assert np.isfinite(x).all() and np.isfinite(result.impulses).all()
+        assert x[:, 2].min() > -1e-6
+    assert len(np.unique(pieces(solver.model))) == 2
+    surface = {tuple(sorted(f)) for f in stage.detector.faces[0].tolist()}
+    assert surface == {tuple(sorted(f)) for f in solver.model.boundary_faces().tolist()}
+    assert sum(r.split for r in cutter.reports) > 0
+    assert result.contact_forces[:, 2].sum() == pytest.approx(weight, rel=2e-3)
