@@ -67,7 +67,7 @@ def test_swept_surface_crossings_and_distances():
     assert np.isnan(t[2])                       # above the blade
     assert t[3] == pytest.approx(0.5)           # through the second piece, x = 1
     assert np.isnan(t[4])                       # beyond where the blade has gone (y 0.75 > 0.5)
-    d, side = surface.distances(np.array([[0.5, 0.3, 0.0], [0.5, -0.2, 0.0], [0.5, 0.0, 1.5], [1.0, 0.8, 0.0]]))
+    d, side, _ = surface.distances(np.array([[0.5, 0.3, 0.0], [0.5, -0.2, 0.0], [0.5, 0.0, 1.5], [1.0, 0.8, 0.0]]))
     np.testing.assert_allclose(d, [0.3, 0.2, 0.5, 0.3])
     assert side[0] == -side[1]
     np.testing.assert_allclose(sweep([[0, 0, 0], [0, 0, -1]], [[1, 0, 0], [1, 0, -1]])[:, :, 1], 0.0)

@@ -64,7 +64,8 @@ class Cutter:
         self.snap = float(snap)
         self.surface = CutSurface()
         self.pending: set = set()               # cut faces whose two sides still share them
-        self.cut_nodes: set = set()             # nodes on the cut (for drawing the cut faces)
+        self.cut_nodes: set = set()             # nodes on the cut
+        self.cut_keys: set = set()              # boundary faces on the cut (sorted node ids)
         edges = model.points[model.tets[:, [1, 2, 3, 2, 3, 3]]] - model.points[model.tets[:, [0, 0, 0, 1, 1, 2]]]
         self.spacing = float(np.median(np.linalg.norm(edges, axis=2)))
         self.reports: list[CutReport] = []
@@ -116,6 +117,7 @@ class Cutter:
             if v is not None:
                 new_v.append(np.concatenate([v] + new_v)[sources])
         self.pending = still_interior(model, self.pending)
+        self._mark_cut_faces(np.concatenate([x] + new_x))
         report.nodes_added, report.separated = sum(len(a) for a in new_x), len(sources)
         report.seconds["model"] = time.perf_counter() - start
         start = time.perf_counter()
@@ -130,12 +132,28 @@ class Cutter:
         return report
 
     def cut_faces(self) -> np.ndarray:
-        """The boundary triangles that lie on the cut (all their nodes on it), as rows of
-        `model.boundary_faces()`: a mask."""
+        """A mask of `model.boundary_faces()`: the faces that a cut opened."""
+        keys = np.sort(self.model.boundary_faces(), axis=1)
+        return np.array([tuple(k) in self.cut_keys for k in keys.tolist()], dtype=bool).reshape(-1)
+
+    def _mark_cut_faces(self, x: np.ndarray) -> None:
+        """Record the boundary faces this step opened: all three nodes on the cut, and lying on
+        the swept surface (within the snapping distance, facing along its normal), where they are
+        now (the pieces move apart later)."""
         faces = self.model.boundary_faces()
-        on = np.zeros(self.model.n_nodes + 1, bool)
+        on = np.zeros(self.model.n_nodes, bool)
         on[list(self.cut_nodes)] = True
-        return on[faces].all(axis=1)
+        keys = np.sort(faces, axis=1)
+        new = on[faces].all(axis=1) & np.array([tuple(k) not in self.cut_keys for k in keys.tolist()], dtype=bool)
+        if not new.any():
+            return
+        p = x[faces[new]]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        distance, _, nearest = self.surface.distances(p.mean(axis=1))
+        aligned = np.abs(np.einsum("ki,ki->k", normal, self.surface.normals[nearest])) >= 0.5
+        close = distance <= max(self.snap, 0.05) * self.spacing
+        self.cut_keys.update(map(tuple, keys[new][aligned & close].tolist()))
 
     # ---- planning -----------------------------------------------------------------------------
 
@@ -157,7 +175,7 @@ class Cutter:
         candidates = np.flatnonzero((corners.min(axis=1) <= hi).all(axis=1) & (corners.max(axis=1) >= lo).all(axis=1))
         near = surface.near(lo - h, hi + h)
         nodes = np.unique(tets[candidates])
-        distance, side = surface.distances(x[nodes], near)
+        distance, side, _ = surface.distances(x[nodes], near)
         edges = np.unique(np.sort(tets[candidates][:, _EDGES].reshape(-1, 2), axis=1), axis=0)
         length = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)
         shortest = np.full(model.n_nodes, np.inf)

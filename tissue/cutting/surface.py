@@ -119,12 +119,12 @@ class CutSurface:
         t_out[found], tri_out[found] = best[found], ids[first[found]]
         return t_out, tri_out
 
-    def distances(self, points: np.ndarray, triangles=None) -> tuple[np.ndarray, np.ndarray]:
-        """(distance (k,), side (k,) ±1) of points to the nearest given triangle (default: all),
-        the side that of the nearest triangle's plane (+ along its normal)."""
+    def distances(self, points: np.ndarray, triangles=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(distance (k,), side (k,) ±1, nearest triangle (k,)) of points to the nearest given
+        triangle (default: all), the side that of the nearest triangle's plane (+ along its normal)."""
         ids = np.arange(len(self)) if triangles is None else np.asarray(triangles)
         if len(ids) == 0:
-            return np.full(len(points), np.inf), np.ones(len(points))
+            return np.full(len(points), np.inf), np.ones(len(points)), np.full(len(points), -1)
         T, n = self.triangles[ids], self.normals[ids]
         p = points[:, None, :]                                    # (k, 1, 3)
         plane = np.einsum("kmi,mi->km", p - T[None, :, 0], n)
@@ -141,4 +141,4 @@ class CutSurface:
             distance = np.minimum(distance, np.linalg.norm(p - (a[None] + f[..., None] * ab[None]), axis=2))
         nearest = np.argmin(distance, axis=1)
         rows = np.arange(len(points))
-        return distance[rows, nearest], np.where(plane[rows, nearest] >= 0, 1.0, -1.0)
+        return distance[rows, nearest], np.where(plane[rows, nearest] >= 0, 1.0, -1.0), ids[nearest]
