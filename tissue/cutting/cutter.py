@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import backend
 from ..errors import TissueError
 from ..fem.model import HELD
 from . import subdivision
@@ -83,6 +84,7 @@ class Cutter:
         self.surface.add(triangles)
         x = self.positions()
         plan = self._plan(np.asarray(triangles).reshape(-1, 3, 3), x, self.snap)
+        backend.sync()       # (the clocks read after the device's work: a GPU runs behind)
         report.seconds["geometry"] = time.perf_counter() - start
         start = time.perf_counter()
         model = self.model
@@ -119,14 +121,17 @@ class Cutter:
         self.pending = still_interior(model, self.pending)
         self._mark_cut_faces(np.concatenate([x] + new_x))
         report.nodes_added, report.separated = sum(len(a) for a in new_x), len(sources)
+        backend.sync()
         report.seconds["model"] = time.perf_counter() - start
         start = time.perf_counter()
         if self.solver is not None and report.nodes_added:
             self.solver.set_state(np.concatenate([x] + new_x), np.concatenate([v] + new_v))
+        backend.sync()
         report.seconds["state"] = time.perf_counter() - start
         start = time.perf_counter()
         if self.compliance is not None:
             self.compliance.update()
+        backend.sync()
         report.seconds["compliance"] = time.perf_counter() - start
         self.reports.append(report)
         return report
@@ -144,7 +149,8 @@ class Cutter:
         on = np.zeros(self.model.n_nodes, bool)
         on[list(self.cut_nodes)] = True
         keys = np.sort(faces, axis=1)
-        new = on[faces].all(axis=1) & np.array([tuple(k) not in self.cut_keys for k in keys.tolist()], dtype=bool)
+        new = on[faces].all(axis=1)
+        new[new] = [tuple(k) not in self.cut_keys for k in keys[new].tolist()]
         if not new.any():
             return
         p = x[faces[new]]
@@ -245,32 +251,32 @@ class Cutter:
         its two sides, inside the swept surface (the cut runs along them). An element's side is
         that of its nodes off the cut, or, all four on it, of its centre."""
         model = self.model
-        elements = np.unique(np.concatenate([incident_elements(model, n) for n in np.flatnonzero(state == 0)] or
-                                            [np.zeros(0, np.int64)]))
+        on = np.flatnonzero(state == 0)
+        if len(on) == 0:
+            return []
+        elements = np.unique(np.concatenate([incident_elements(model, n) for n in on]))
         tets = model.tets[elements].astype(np.int64)
         s = state[tets]
         off = np.where(np.abs(s) == 1, s, 0)
         side = np.sign(off.sum(axis=1))
-        mixed = (off == 1).any(axis=1) & (off == -1).any(axis=1)
-        side[mixed] = 0
+        side[(off == 1).any(axis=1) & (off == -1).any(axis=1)] = 0          # mixed: no side
         centred = (s == 0).all(axis=1)
         if centred.any():
             side[centred] = self.surface.distances(x[tets[centred]].mean(axis=1))[1]
-        side_of = dict(zip(elements.tolist(), side.tolist()))
-        found = set()
-        for e, nodes, states, own in zip(elements.tolist(), tets, s, side.tolist()):
-            for corner in range(4):
-                face = nodes[_TRIPLES[corner]]
-                if own == 0 or (states[_TRIPLES[corner]] != 0).any() or face_key(face) in found:
-                    continue
-                other = [f for f in sharing(model, face.tolist()).tolist() if f != e]
-                if not other or side_of.get(other[0], 0) != -own:
-                    continue
-                p = x[face]
-                normal = np.cross(p[1] - p[0], p[2] - p[0])
-                normal *= self.spacing / np.linalg.norm(normal)
-                centre = p.mean(axis=0)
-                t, _ = self.surface.crossings((centre - normal)[None], (centre + normal)[None])
-                if np.isfinite(t[0]):
-                    found.add(face_key(face))
-        return list(found)
+        faces = tets[:, _TRIPLES].reshape(-1, 3)                              # 4 per element
+        owner_side = np.repeat(side, 4)
+        zero = (s[:, _TRIPLES] == 0).all(axis=2).reshape(-1) & (owner_side != 0)
+        if not zero.any():
+            return []
+        keys, inverse, counts = np.unique(np.sort(faces[zero], axis=1), axis=0, return_inverse=True,
+                                          return_counts=True)
+        total = np.zeros(len(keys))
+        np.add.at(total, inverse.reshape(-1), owner_side[zero])
+        opposite = (counts == 2) & (total == 0)                             # a + and a − element
+        keys = keys[opposite]
+        p = x[keys]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        normal *= (self.spacing / np.linalg.norm(normal, axis=1))[:, None]
+        centre = p.mean(axis=1)
+        t, _ = self.surface.crossings(centre - normal, centre + normal)
+        return [face_key(k) for k in keys[np.isfinite(t)]]
