@@ -205,13 +205,11 @@ class Cutter:
                 state[ends] = 0
                 continue
             crossed = {tuple(p): f for p, f in zip(pairs.tolist(), t) if np.isfinite(f)}
-            split = []
-            for k, e in enumerate(candidates):
-                s = element_states[k]
-                if (s == 1).any() and (s == -1).any() and all(
-                        tuple(sorted((tets[e, i], tets[e, j]))) in crossed for (i, j), c in zip(_EDGES, cross[k]) if c):
-                    split.append(k)
-            split = np.array(split, dtype=np.int64)
+            # split: a + and a − node, and every +/− edge crossing the surface
+            edge_keys = np.sort(tets[candidates][:, _EDGES], axis=2) @ np.array([model.n_nodes, 1])
+            hit = np.isin(edge_keys, pairs[np.isfinite(t)] @ np.array([model.n_nodes, 1]))
+            split = np.flatnonzero((element_states == 1).any(axis=1) & (element_states == -1).any(axis=1)
+                                   & (hit | ~cross).all(axis=1))
             cut_edges = np.unique(np.sort(tets[candidates[split]][:, _EDGES][cross[split]], axis=1), axis=0) \
                 if len(split) else np.zeros((0, 2), np.int64)
             in_split = set(candidates[split].tolist())
