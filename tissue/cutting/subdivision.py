@@ -13,8 +13,11 @@ lowest node id, the piece coned from its lowest node id), which two elements sha
 alike, so the result is conforming without case tables; and the only elements it creates have
 corners at original nodes and at cut points inside their edges, so their quality is bounded
 (below) by how far the cut points stay from the ends of the edges. An element the cut has only
-partly crossed (the crack front) is not split until the cut has crossed it whole: the cut
-advances element by element behind the blade, and no element has a hanging node.
+partly crossed (the crack front) is not split; a cut point on an edge it shares with elements
+that are split is snapped to the nearer end of the edge (so no element has a hanging node), and
+a node once on the cut stays on it. A cut advanced in small steps therefore runs mostly along
+faces through snapped nodes, splitting the elements crossed whole within one step: the cut
+advances behind the blade at once, and its surface is as fine as the mesh.
 
 The quality bound. Every tetrahedron a cut creates has a smallest dihedral angle of at least
 MIN_DIHEDRAL degrees and a condition number (Knupp's ‖S‖ ‖S⁻¹‖ / 3 of its edge matrix relative
