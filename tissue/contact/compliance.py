@@ -287,9 +287,8 @@ class WarpedCompliance:
         solver = self.solver
         fem = solver.fem
         n = fem.n_nodes
-        if self.source is not None:
+        if self.source is not None:      # folded only where W needs it (prepare)
             self.source.update()
-            self.source.fold()
             self.C0, self.inverse_mass = self.source.C, 0.0
         else:
             C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
@@ -316,7 +315,8 @@ class WarpedCompliance:
 
     def follow(self, compliance) -> None:
         """Read A₀⁻¹ from a tissue.cutting.CuttingCompliance of this body (the same rest matrix:
-        its dt and damping must be the solver's), folded before each use. Its C is A₀⁻¹ whole, so
+        its dt and damping must be the solver's), its lazy factors folded in a step whose rows
+        touch the body. Its C is A₀⁻¹ whole, so
         a free body's translation is warped with the rest (the plain warping of the paper): after
         a cut, one body may be several pieces, each with a translation of its own."""
         solver = self.solver

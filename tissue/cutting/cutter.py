@@ -258,10 +258,16 @@ class Cutter:
         off = np.where(np.abs(s) == 1, s, 0)
         side = np.sign(off.sum(axis=1))
         side[(off == 1).any(axis=1) & (off == -1).any(axis=1)] = 0          # mixed: no side
-        centred = (s == 0).all(axis=1)
-        if centred.any():
-            side[centred] = self.surface.distances(x[tets[centred]].mean(axis=1))[1]
         faces = tets[:, _TRIPLES].reshape(-1, 3)                              # 4 per element
+        centred = (s == 0).all(axis=1)
+        if centred.any():   # all four on the cut: with most of its neighbours, else by its centre
+            _, inverse = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True)
+            inverse = inverse.reshape(-1)
+            decided = np.zeros(inverse.max() + 1)
+            np.add.at(decided, inverse, np.repeat(np.where(centred, 0, side), 4))
+            vote = np.sign(decided[inverse].reshape(-1, 4).sum(axis=1))[centred]
+            centre = self.surface.distances(x[tets[centred]].mean(axis=1))[1]
+            side[centred] = np.where(vote != 0, vote, centre)
         owner_side = np.repeat(side, 4)
         zero = (s[:, _TRIPLES] == 0).all(axis=2).reshape(-1) & (owner_side != 0)
         if not zero.any():
