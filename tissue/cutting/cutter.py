@@ -88,13 +88,14 @@ class Cutter:
         report.seconds["geometry"] = time.perf_counter() - start
         start = time.perf_counter()
         model = self.model
-        v = self.solver.velocities() if self.solver is not None else None
+        # velocities are read only when nodes are to be added (a read costs milliseconds)
+        v = self.solver.velocities() if self.solver is not None and len(plan.elements) else None
         report.split, report.created, report.snapped = len(plan.elements), len(plan.sub_tets), len(plan.zeros)
         report.min_dihedral, report.max_condition = quality(self._rest_with(plan), plan.sub_tets)
         u, w = plan.cut_edges.T if len(plan.cut_edges) else (np.zeros(0, np.int64),) * 2
         t = plan.fractions[:, None]
         new_x = [(1 - t) * x[u] + t * x[w]]
-        new_v = [(1 - t) * v[u] + t * v[w]] if v is not None else None
+        new_v = [(1 - t) * v[u] + t * v[w]] if v is not None else [np.zeros((0, 3))]
         if len(plan.elements):
             model.remove_elements(plan.elements)
             ids = model.add_nodes((1 - t) * model.points[u] + t * model.points[w])
@@ -116,11 +117,13 @@ class Cutter:
                 model.set_held(np.concatenate([model.held_nodes, copies[held]]))
             self.cut_nodes.update(copies.tolist())
             new_x.append(x_all[sources])
-            if v is not None:
+            if self.solver is not None:
+                v = self.solver.velocities()[:len(x)] if v is None else v     # (no split: none added yet)
                 new_v.append(np.concatenate([v] + new_v)[sources])
         self.pending = still_interior(model, self.pending)
-        self._mark_cut_faces(np.concatenate([x] + new_x))
         report.nodes_added, report.separated = sum(len(a) for a in new_x), len(sources)
+        if report.nodes_added:
+            self._mark_cut_faces(np.concatenate([x] + new_x))
         backend.sync()
         report.seconds["model"] = time.perf_counter() - start
         start = time.perf_counter()
