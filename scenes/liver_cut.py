@@ -13,9 +13,9 @@ class LiverCut(Scene):
 
     The procedural liver (about 1,607 tetrahedra; `--set liver.tets=3874` for the finer mesh),
     E = 3 kPa, ν = 0.3 and the lowered density of the `liver` scene, hangs from three small patches
-    near its top (as in `liver`, untilted). From t = 0.6 s a vertical blade, reaching 12 cm down
-    from above the organ, sweeps a slightly slanted line across the left lobe at 1 mm per step
-    (5 cm/s), so the cut advances a few elements at a time: crossed elements are split with the
+    near its top (as in `liver`, untilted). From t = 1 s, the organ settled, a vertical blade
+    reaching 12 cm down from above it sweeps a slightly slanted line across the left lobe at 2 mm
+    per step (10 cm/s), so the cut advances a few elements at a time: crossed elements are split with the
     quality bound of tissue.cutting (smallest dihedral angle ≥ 5°), the two sides separated, and
     the liver's compliance A₀⁻¹ kept exact by low-rank updates. The cut faces are drawn in a darker
     inner colour. Once through, the lobe, held by nothing, falls away onto a tray 7 cm below the
@@ -28,7 +28,7 @@ class LiverCut(Scene):
         mesh="liver", tets=1607, young=3000.0, poisson=0.3, density=300.0,
         fixed=Fixed(region=(0.35, 0.65, 0.3, 0.7, 0.9, 1.0), count=3, radius=0.012)))
     cut: Cut = field(default_factory=lambda: Cut(
-        path=(0.66, 0.05, 1.05, 0.74, 0.85, 1.05), direction=(0.0, 0.0, -1.0), depth=0.12, start=0.6, speed=0.05))
+        path=(0.66, 0.05, 1.05, 0.74, 0.85, 1.05), direction=(0.0, 0.0, -1.0), depth=0.12, start=1.0, speed=0.1))
     tray: Obstacle = field(default_factory=lambda: Obstacle(shape="plane", centre=(0.0, 0.0, -0.1),
                                                             color="#c9ccd1"))
     contact: Contact = field(default_factory=lambda: Contact(friction=0.5, distance=2e-3, tolerance=1e-7,
