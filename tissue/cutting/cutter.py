@@ -7,7 +7,9 @@ and its time by stage.
 The geometry is found in the current (deformed) configuration, where the blade is: a cut point at
 fraction t of an edge is at that fraction of the edge in the rest shape too (the element's map is
 affine), and its position and velocity are interpolated alike. Quality is measured in the rest
-shape (what the stiffness sees).
+shape (what the stiffness sees). The swept surface is kept where the blade swept it (world
+coordinates): material that moves far while a cut is under way is judged against where the blade
+was, so a slow cut through a swinging body may leave an element bridging the two sides.
 """
 
 from __future__ import annotations
