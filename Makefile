@@ -50,6 +50,7 @@ figures: demo
 	$(VENV)/bin/tissue run incline --out figures/incline
 	$(VENV)/bin/tissue run liver_press --out figures/liver_press
 	$(VENV)/bin/tissue run liver_grasp --out figures/liver_grasp
+	$(VENV)/bin/tissue run liver_cut --out figures/liver_cut
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -1,12 +1,20 @@
-"""Cutting benchmark (paper §4.3.1), the compliance update: ms per update of C = A⁻¹ after a cut
-step, eager (folded into C every step: the paper's cost) against lazy (low-rank factors kept,
-folded when their rank passes FOLD_RANK), on the liver at about 1,607 and 3,874 tetrahedra (the
-paper: 22 and 64 ms per update on a GTX 285, about 2 nodes added or removed per step).
+"""Cutting benchmark (paper §4.3.1): real cut steps along the `liver_cut` scene's predefined line,
+on the liver at about 1,607 and 3,874 tetrahedra (the paper: 22 and 64 ms per compliance update
+on a GTX 285, about 2 nodes added or removed per step).
 
-A cut step here: two face-adjacent elements removed and each put back as four around a new node at
-its centroid (2 nodes and 8 elements added, 2 removed), then one `update()` of each compliance.
-The error against the direct inverse of the freshly assembled matrix (relative to max |C|) is
-measured after the first and the last step.
+Each step the blade advances STEP_LENGTH along the line and `Cutter.cut` splits and separates what
+the swept surface has crossed (tissue.cutting). Per step that changed the mesh:
+  - the whole cut step split by stage: geometry (surface queries, split plan with the quality
+    bound), model edits (FEM data, mass, gather index, boundary, held nodes, the solver's state
+    arrays), the new nodes' state, the compliance update (eager: folded into C every step, the
+    paper's cost; lazy: low-rank factors kept, folded past FOLD_RANK), and the contact rows (the
+    contact stage re-reading the surface, its samples, held masks and the compliance);
+  - the nodes added and elements split (the compliance's rank follows them);
+  - the error of both compliances against the direct inverse of the freshly assembled matrix
+    (relative to max |C|), after the first and the last cut step;
+  - the worst quality (smallest dihedral angle, largest condition number) of the elements created,
+    and of a naive split (no snapping, no bound) of the same cut on a copy of the mesh.
+Medians over the cut steps; kernels are compiled by a warm-up cut on a small box first.
 
     python -m bench.cutting
 """
@@ -17,90 +25,170 @@ import numpy as np
 import scipy.linalg
 
 from bench.common import machine, print_machine, write_results
+from scenes.liver_cut import LiverCut
 from tissue import backend
-from tissue.cutting import CuttingCompliance
-from tissue.fem.material import Material
-from tissue.fem.model import BodyModel
-from tissue.mesh.organs import organ_mesh
-from tissue.mesh.surface import OUTWARD_FACES
-from tissue.solver.reference import rest_matrix
+from tissue.scene import held_nodes
 
-MATERIAL = Material()
-DT = 0.01
 FOLD_RANK = 240
-SIZES = {1607: 14, 3874: 12}     # target tetrahedra: timed steps
+STEP_LENGTH = 0.002          # m of blade travel per step
+SIZES = (1607, 3874)
 
 
-def adjacent_pair(model: BodyModel, rng) -> np.ndarray:
-    """A random element and one that shares a face with it."""
-    tets = model.tets
-    while True:
-        e = int(rng.integers(len(tets)))
-        shared = np.isin(tets, tets[e]).sum(axis=1) == 3
-        if shared.any():
-            return np.array([e, int(rng.choice(np.flatnonzero(shared)))])
+def build(target: int):
+    """The scene's liver (held as in liver_cut), its solver at rest, a contact stage on a tray,
+    eager and lazy compliances and the cutter, and a naive cutter on a copy."""
+    from tissue.contact.obstacles import Plane, RigidObstacle
+    from tissue.contact.pipeline import Contact, ContactStage
+    from tissue.cutting import CuttingCompliance
+    from tissue.cutting.cutter import Cutter
+    from tissue.cutting.surface import CutPath
+    from tissue.fem import CorotationalFEM, Material
+    from tissue.fem.model import BodyModel
+    from tissue.mesh.organs import organ_mesh
+    from tissue.solver import CGSettings, ImplicitEuler
+
+    scene = LiverCut()
+    spec, cut, s = scene.liver, scene.cut, scene.solver
+    mesh = organ_mesh("liver", target_tets=target)
+    material = Material(young=spec.young, poisson=spec.poisson, density=spec.density)
+    fem = CorotationalFEM(mesh, material, rotation=spec.rotation)
+    held = held_nodes(mesh.points, spec.fixed)
+    solver = ImplicitEuler(fem, dt=scene.dt, rayleigh_mass=s.rayleigh_mass, rayleigh_stiffness=s.rayleigh_stiffness,
+                           cg=CGSettings(max_iterations=s.cg_iterations, preconditioner=s.preconditioner), fixed=held)
+    fem.model.reserve(nodes=fem.model.n_nodes // 4, elements=fem.model.n_elements // 4)   # as the scene does
+    args = (fem.model, scene.dt, s.rayleigh_mass, s.rayleigh_stiffness)
+    updates = {"eager": CuttingCompliance(*args), "lazy": CuttingCompliance(*args, fold_rank=FOLD_RANK)}
+    contact = ContactStage([solver], [RigidObstacle(Plane((0.0, 0.0, -0.1)))], Contact(distance=2e-3))
+    contact.follow_compliance(0, updates["eager"])
+    lo, hi = mesh.bounds()
+    path = CutPath(lo + np.asarray(cut.path).reshape(-1, 3) * (hi - lo), cut.direction, cut.depth)
+    naive_model = BodyModel(mesh, material)
+    return dict(mesh=mesh, model=fem.model, solver=solver, updates=updates, contact=contact, path=path,
+                material=material, scene=scene, held=held, cutter=Cutter(fem.model, solver),
+                naive=Cutter(naive_model, snap=0.0))
 
 
-def cut_step(model: BodyModel, rng) -> None:
-    elements = adjacent_pair(model, rng)
-    tets = model.tets[elements].copy()
-    model.remove_elements(elements)
-    centres = model.add_nodes(model.points[tets].mean(axis=1))
-    faces = tets[:, OUTWARD_FACES[:, ::-1]]                          # apex inside
-    model.add_elements(np.concatenate([faces, np.broadcast_to(centres[:, None, None], (2, 4, 1))],
-                                      axis=2).reshape(-1, 4))
+def direct_error(b, C: np.ndarray) -> float:
+    from tissue.solver.reference import rest_matrix
 
-
-def direct_error(model: BodyModel, C: np.ndarray) -> float:
-    A = rest_matrix(model.mesh(), MATERIAL, DT).toarray()
-    reference = scipy.linalg.inv(A)       # no held nodes; every node is in an element
+    s = b["scene"].solver
+    model = b["model"]
+    A = rest_matrix(model.mesh(), b["material"], b["scene"].dt, s.rayleigh_mass, s.rayleigh_stiffness)
+    free = np.flatnonzero(np.repeat(model.held == 0, 3))
+    reference = np.zeros(A.shape)
+    reference[np.ix_(free, free)] = scipy.linalg.inv(A[free][:, free].toarray())
     return float(np.abs(C - reference).max() / np.abs(reference).max())
 
 
-def run(target: int, steps: int, rng) -> dict:
-    mesh = organ_mesh("liver", target_tets=target)
-    model = BodyModel(mesh, MATERIAL, node_capacity=mesh.n_points + 2 * steps + 16)
-    updates = {"eager": CuttingCompliance(model, DT), "lazy": CuttingCompliance(model, DT, fold_rank=FOLD_RANK)}
-    times = {mode: [] for mode in updates}
-    ranks, errors = [], {mode: [] for mode in updates}
-    for step in range(steps + 1):                  # step 0 compiles: not timed
-        cut_step(model, rng)
+def warm_up() -> None:
+    """Compile every kernel a cut step launches (once per process, whatever the mesh)."""
+    from tissue.cutting import CuttingCompliance
+    from tissue.cutting.cutter import Cutter
+    from tissue.cutting.surface import CutPath
+    from tissue.fem import CorotationalFEM, Material
+    from tissue.mesh import box
+    from tissue.solver import ImplicitEuler
+
+    fem = CorotationalFEM(box(size=(0.1, 0.04, 0.04), cells=(4, 2, 2)), Material())
+    solver = ImplicitEuler(fem, dt=0.02, fixed=[0])
+    compliances = [CuttingCompliance(fem.model, 0.02), CuttingCompliance(fem.model, 0.02, fold_rank=FOLD_RANK)]
+    cutter = Cutter(fem.model, solver)
+    path = CutPath([[0.047, -0.01, 0.05], [0.049, 0.05, 0.05]], [0, 0, -1], 0.1)
+    for i in range(4):
+        cutter.cut(path.sweep(path.length * i / 4, path.length * (i + 1) / 4))
+        for c in compliances:
+            c.update()
+            c.rows(np.arange(6))
+
+
+def run(target: int) -> dict:
+    b = build(target)
+    model, updates, contact, cutter = b["model"], b["updates"], b["contact"], b["cutter"]
+    steps = int(np.ceil(b["path"].length / STEP_LENGTH))
+    rows = []
+    errors = {mode: [] for mode in updates}
+    naive = {"min_dihedral": np.inf, "max_condition": 1.0}
+    for i in range(steps):
+        patch = b["path"].sweep(i * STEP_LENGTH, (i + 1) * STEP_LENGTH)
+        backend.sync()
+        report = cutter.cut(patch)
+        backend.sync()
+        row = {k: 1e3 * v for k, v in report.seconds.items()}
         for mode, update in updates.items():
             start = time.perf_counter()
             update.update()
             backend.sync()
-            if step:
-                times[mode].append(1e3 * (time.perf_counter() - start))
-        ranks.append(updates["lazy"].rank)
-        if step in (1, steps):
+            row[f"compliance_{mode}"] = 1e3 * (time.perf_counter() - start)
+        start = time.perf_counter()
+        if contact._edited:
+            contact._follow_edits()
+        backend.sync()
+        row["contact_rows"] = 1e3 * (time.perf_counter() - start)
+        naive_report = b["naive"].cut(patch)
+        naive["min_dihedral"] = min(naive["min_dihedral"], naive_report.min_dihedral)
+        naive["max_condition"] = max(naive["max_condition"], naive_report.max_condition)
+        if report.nodes_added == 0 and report.split == 0:
+            continue
+        row.update(step=i, nodes_added=report.nodes_added, split=report.split, created=report.created,
+                   min_dihedral=report.min_dihedral, max_condition=report.max_condition,
+                   lazy_rank=updates["lazy"].rank)
+        rows.append(row)
+        if len(rows) == 1:
             for mode, update in updates.items():
-                errors[mode].append(direct_error(model, update.dense()))
-    result = {"tets": mesh.n_tets, "nodes": mesh.n_points, "steps": steps, "fold_rank": FOLD_RANK,
-              "lazy_folds": updates["lazy"].folds, "lazy_rank_after_each_step": ranks}
-    for mode in updates:
-        ms = np.array(times[mode])
-        result[mode] = {"median_ms": float(np.median(ms)), "mean_ms": float(ms.mean()), "max_ms": float(ms.max()),
-                        "error_first_last": errors[mode]}
-    return result
+                errors[mode].append(direct_error(b, update.dense()))
+    for mode, update in updates.items():
+        errors[mode].append(direct_error(b, update.dense()))
+    stages = ("geometry", "model", "state", "contact_rows")
+    medians = {k: float(np.median([r[k] for r in rows])) for k in stages + ("compliance_eager", "compliance_lazy")}
+    whole = {mode: float(np.median([sum(r[k] for k in stages) + r[f"compliance_{mode}"] for r in rows]))
+             for mode in updates}
+    created = [r for r in rows if r["created"]]
+    pieces = len(np.unique(_pieces(model)))
+    return {"tets": b["mesh"].n_tets, "nodes": b["mesh"].n_points, "held": len(b["held"]), "steps": steps,
+            "cut_steps": len(rows), "step_length_m": STEP_LENGTH, "fold_rank": FOLD_RANK,
+            "tets_after": model.n_elements, "nodes_after": model.n_nodes, "pieces_after": pieces,
+            "median_ms": medians, "whole_step_median_ms": whole,
+            "nodes_added_median": float(np.median([r["nodes_added"] for r in rows])),
+            "nodes_added_max": int(max(r["nodes_added"] for r in rows)),
+            "error_first_last": errors, "lazy_folds": updates["lazy"].folds,
+            "worst_created": {"min_dihedral": min(r["min_dihedral"] for r in created),
+                              "max_condition": max(r["max_condition"] for r in created)},
+            "worst_naive": naive, "per_step": rows}
+
+
+def _pieces(model) -> np.ndarray:
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    tets = model.tets
+    incidence = sp.csr_matrix((np.ones(tets.size), (np.repeat(np.arange(len(tets)), 4), tets.reshape(-1))),
+                              shape=(len(tets), model.n_nodes))
+    return connected_components(incidence @ incidence.T)[1]
 
 
 def main() -> None:
     backend.init(precision="f64")
     info = machine()
     print_machine(info)
-    rng = np.random.default_rng(0)
+    warm_up()
     results = []
-    print(f"{'tets':>6} {'nodes':>6} {'mode':>6} {'median ms':>10} {'mean ms':>8} {'max ms':>8}  error (first, last step)")
-    for target, steps in SIZES.items():
-        r = run(target, steps, rng)
+    for target in SIZES:
+        r = run(target)
         results.append(r)
-        for mode in ("eager", "lazy"):
-            m = r[mode]
-            print(f"{r['tets']:>6} {r['nodes']:>6} {mode:>6} {m['median_ms']:>10.1f} {m['mean_ms']:>8.1f} "
-                  f"{m['max_ms']:>8.1f}  " + ", ".join(f"{e:.1e}" for e in m["error_first_last"]))
-        print(f"#   lazy: {r['lazy_folds']} folds in {steps + 1} steps (fold rank {FOLD_RANK}); rank after each step "
-              f"{r['lazy_rank_after_each_step']}")
-    write_results("cutting", {"machine": info, "results": results})
+        m, w = r["median_ms"], r["whole_step_median_ms"]
+        print(f"\n{r['tets']} tets, {r['nodes']} nodes: {r['cut_steps']} of {r['steps']} steps changed the mesh "
+              f"(nodes added per step: median {r['nodes_added_median']:.0f}, max {r['nodes_added_max']}); "
+              f"after: {r['tets_after']} tets, {r['nodes_after']} nodes, {r['pieces_after']} pieces")
+        print(f"  median ms: geometry {m['geometry']:.2f}, model edits {m['model']:.2f}, state {m['state']:.2f}, "
+              f"contact rows {m['contact_rows']:.2f}, compliance eager {m['compliance_eager']:.2f} / lazy "
+              f"{m['compliance_lazy']:.2f}")
+        print(f"  whole cut step (median ms): eager {w['eager']:.2f}, lazy {w['lazy']:.2f}")
+        print("  error vs direct inverse (first, last cut step): " + "; ".join(
+            f"{mode} " + ", ".join(f"{e:.1e}" for e in errs) for mode, errs in r["error_first_last"].items()))
+        print(f"  worst created: dihedral {r['worst_created']['min_dihedral']:.1f} deg, condition "
+              f"{r['worst_created']['max_condition']:.1f}; naive split: dihedral "
+              f"{r['worst_naive']['min_dihedral']:.2f} deg, condition {r['worst_naive']['max_condition']:.1f}")
+    write_results("cutting", {"machine": info, "step_length_m": STEP_LENGTH, "results": results})
 
 
 if __name__ == "__main__":

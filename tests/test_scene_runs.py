@@ -25,10 +25,13 @@ SMALL = {  # the scene's own mesh fields, made small: each run takes a few secon
     "organs": ["liver.tets=300", "stomach.tets=300", "colon.tets=300"],
     "liver_press": ["liver.tets=300", "stomach.tets=300"],
     "liver_grasp": ["liver.tets=300", "stomach.tets=300"],
+    # the blade from the first step, 2 cm a step; the tray within reach
+    "liver_cut": ["liver.tets=300", "cut.start=0", "cut.speed=1", "tray.centre=0,0,-0.035"],
 }
 STAGES = {"beam": ["free_motion"], "incline": ["free_motion", "contact"], "liver": ["free_motion"],
           "organs": ["free_motion"], "liver_press": ["free_motion", "contact"],
-          "liver_grasp": ["free_motion", "contact", "haptics"]}
+          "liver_grasp": ["free_motion", "contact", "haptics"],
+          "liver_cut": ["free_motion", "contact", "cutting"]}
 
 
 def test_every_scene_is_covered():

@@ -29,6 +29,7 @@ from .scene import Simulation
 
 LENGTH_UNITS = ((1.0, "m", 1.0), (1e-3, "mm", 1e3))      # (threshold, name, factor), largest first
 STRESS_UNITS = ((1e6, "MPa", 1e-6), (1e3, "kPa", 1e-3), (0.0, "Pa", 1.0))
+INNER_COLOR = "#8e2f2a"      # the faces of a cut: an organ's darker inside
 
 
 def nice_ceiling(x: float) -> float:
@@ -50,12 +51,14 @@ def _unit(value: float, units) -> tuple[str, float]:
 
 
 class Frame:
-    """One recorded state: step, time, and per body its positions and element von Mises stress."""
+    """One recorded state: step, time, and per body its positions, element von Mises stress and
+    topology (rest points, boundary faces, mask of those on a cut: changed by cutting)."""
 
-    __slots__ = ("step", "time", "positions", "von_mises")
+    __slots__ = ("step", "time", "positions", "von_mises", "topology")
 
-    def __init__(self, step, time, positions, von_mises):
+    def __init__(self, step, time, positions, von_mises, topology):
         self.step, self.time, self.positions, self.von_mises = step, time, positions, von_mises
+        self.topology = topology
 
 
 class RunOutput:
@@ -119,7 +122,8 @@ class RunOutput:
                     point_data={"displacement": u, "displacement_magnitude": np.linalg.norm(u, axis=1),
                                 "held": held},
                     cell_data={"von_mises": stresses[name]})
-        self.frames.append(Frame(sim.step_count, sim.time, positions, stresses))
+        self.frames.append(Frame(sim.step_count, sim.time, positions, stresses,
+                                 {name: body.topology for name, body in sim.bodies.items()}))
         self.seconds["record"] += time.perf_counter() - start
 
     # ---- at the end ------------------------------------------------------------------------------
@@ -165,7 +169,7 @@ class RunOutput:
             per_body = {}
             for name, body in sim.bodies.items():
                 if kind == "displacement":
-                    per_body[name] = np.linalg.norm(frame.positions[name] - body.rest, axis=1)
+                    per_body[name] = np.linalg.norm(frame.positions[name] - frame.topology[name][0], axis=1)
                 else:
                     per_body[name] = body.nodal(frame.von_mises[name])
             values.append(per_body)
@@ -213,12 +217,14 @@ class RunOutput:
         s = self.settings
         renderer = Renderer(size=size, camera=s.camera, up="z", bounds=bounds, edges=s.edges,
                             ground=s.ground, title=title or None, zoom=s.zoom)
+        self._shown = {}
         for name in self.sim.bodies:
             points, faces, scalars = self._drawn(name, 0, colouring)
             if colouring is None:
                 renderer.add_body(name, points, faces)
             else:
                 renderer.add_body(name, points, faces, scalars=scalars, scalar_name=colouring[0], clim=colouring[2])
+            self._show_cut(renderer, name, 0)
         if s.ghost:  # the rest shape, faint and without a shadow, drawn straight on the plotter
             import pyvista as pv
 
@@ -258,13 +264,31 @@ class RunOutput:
         scalars = None if colouring is None else colouring[1][index][name]
         visual = body.visual() if self.settings.visual == "surface" else None
         if visual is None:
-            return x, body.faces, scalars
+            _, faces, cut = self.frames[index].topology[name]
+            return x, faces[~cut], scalars
         return visual.points(x), visual.triangles, None if scalars is None else visual.values(scalars)
+
+    def _show_cut(self, renderer, name: str, index: int) -> None:
+        """The faces of a cut, drawn in the organ's inner colour as a body of their own."""
+        topology = self.frames[index].topology[name]
+        if self._shown.get(name) is topology:
+            return
+        self._shown[name] = topology
+        _, faces, cut = topology
+        drawn = f"{name} (cut)"
+        if drawn in renderer.bodies:
+            renderer.remove(drawn)
+        if cut.any():
+            renderer.add_body(drawn, self.frames[index].positions[name], faces[cut], color=INNER_COLOR)
 
     def _show(self, renderer, index: int, colouring) -> None:
         for name in self.sim.bodies:
-            points, _, scalars = self._drawn(name, index, colouring)
-            renderer.update_body(name, points=points, scalars=scalars)
+            points, faces, scalars = self._drawn(name, index, colouring)
+            reshaped = self._shown.get(name) is not self.frames[index].topology[name]
+            renderer.update_body(name, points=points, scalars=scalars, faces=faces if reshaped else None)
+            self._show_cut(renderer, name, index)
+            if f"{name} (cut)" in renderer.bodies:
+                renderer.update_body(f"{name} (cut)", points=self.frames[index].positions[name])
         for d in self.drawables:
             if d.moving:
                 renderer.update_obstacle(d.name, transform=d.pose(self.frames[index].time))

@@ -418,6 +418,8 @@ class Body:
         self.fixed = held_nodes(own.points, spec.fixed, name)
         self.mesh = own.transformed(rotation=rotation_matrix(spec.orientation), translation=spec.position)
         self.faces = boundary_faces(self.mesh.tets)
+        self.cut = np.zeros(len(self.faces), dtype=bool)     # boundary faces on a cut (drawn apart)
+        self.topology = (self.mesh.points, self.faces, self.cut)   # what a recorded frame draws
         s = scene.solver
         try:
             material = Material(young=spec.young, poisson=spec.poisson, density=spec.density)
@@ -441,6 +443,18 @@ class Body:
                 points = surface[0] @ rotation_matrix(self.spec.orientation).T + np.asarray(self.spec.position)
                 self._visual = EmbeddedSurface(points, surface[1], self.mesh.points, self.mesh.tets)
         return self._visual or None
+
+    def follow_model(self, cut=None) -> None:
+        """After topology edits of the body's model (cutting): its rest mesh, boundary and held
+        nodes as they are now, `cut` (a mask of the boundary faces) the faces on a cut; the smooth
+        source surface is no longer drawn (it cannot show a cut)."""
+        model = self.fem.model
+        self.mesh = model.mesh()
+        self.faces = model.boundary_faces()
+        self.fixed = model.held_nodes
+        self.cut = np.zeros(len(self.faces), dtype=bool) if cut is None else np.asarray(cut, dtype=bool)
+        self.topology = (self.mesh.points, self.faces, self.cut)
+        self._visual = False
 
     @property
     def rest(self) -> np.ndarray:

@@ -270,35 +270,63 @@ class WarpedCompliance:
     """
 
     def __init__(self, solver):
-        fem = solver.fem
         be = backend.current()
         self.solver, self.real = solver, be.real
         self._np = np.float64 if be.real == ti.f64 else np.float32
-        C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
-                             rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
-        # A free body's rigid translation is not warped: A₀⁻¹ = Q + S with S = T Tᵀ / (c m) (T the
-        # uniform translations, c = 1 + h α_M, m the mass; K T = 0, so A₀ T = c M T), and Q moves
-        # no momentum (Tᵀ M Q = 0). Rotating S too by nodal rotations that differ from node to node
-        # would bend the translation: the block on a slope slid 1.4 % too slowly with "polar".
-        n = fem.n_nodes
-        free = len(solver.fixed_nodes) == 0
-        self.inverse_mass = 1.0 / ((1.0 + solver.dt * solver.rayleigh_mass) * fem.model.mass.sum()) \
-            if free else 0.0
-        self.C0_host = 0.5 * (C0 + C0.T) - self.inverse_mass * np.kron(np.ones((n, n)), np.eye(3))   # Q
-        # Ndarrays, not fields: the kernels take them as ndarray parameters, compiled once for
-        # every body (a field per body would compile them again for each).
-        self.C0 = ti.ndarray(self.real, self.C0_host.shape)
-        self.R = ti.ndarray(ti.types.matrix(3, 3, self.real), n)
-        self.r0 = ti.ndarray(ti.types.vector(3, self.real), n + 1)      # + the total impulse
-        self.pushed = ti.ndarray(ti.i32, n + 1)                         # touched nodes with r₀ ≠ 0, + their count
-        self.C0.from_numpy(self.C0_host.astype(self._np))
-        self._tol = fem.rotation_tolerance
+        self.source = None                  # a CuttingCompliance to read A₀⁻¹ from (follow)
+        self._tol = solver.fem.rotation_tolerance
         self.storage = Storage()                              # this step's scratch: see prepare
         self._none, self._no_pos = np.zeros((1, 3, 3), self._np), np.zeros(1, np.int32)
         self.jds, self._ready = None, False
+        self.follow_edits()
+
+    def follow_edits(self) -> None:
+        """A₀⁻¹ and the per-node arrays for the body's current topology: read from the cutting
+        compliance when following one, else inverted anew (dense: a fallback for edits made
+        without one)."""
+        solver = self.solver
+        fem = solver.fem
+        n = fem.n_nodes
+        if self.source is not None:      # folded only where W needs it (prepare)
+            self.source.update()
+            self.C0, self.inverse_mass = self.source.C, 0.0
+        else:
+            C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
+                                 rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
+            # A free body's rigid translation is not warped: A₀⁻¹ = Q + S with S = T Tᵀ / (c m) (T
+            # the uniform translations, c = 1 + h α_M, m the mass; K T = 0, so A₀ T = c M T), and Q
+            # moves no momentum (Tᵀ M Q = 0). Rotating S too by nodal rotations that differ from
+            # node to node would bend the translation: the block on a slope slid 1.4 % too slowly
+            # with "polar".
+            free = len(solver.fixed_nodes) == 0
+            self.inverse_mass = 1.0 / ((1.0 + solver.dt * solver.rayleigh_mass) * fem.model.mass.sum()) \
+                if free else 0.0
+            self.C0_host = 0.5 * (C0 + C0.T) - self.inverse_mass * np.kron(np.ones((n, n)), np.eye(3))   # Q
+            # Ndarrays, not fields: the kernels take them as ndarray parameters, compiled once for
+            # every body (a field per body would compile them again for each).
+            self.C0 = ti.ndarray(self.real, self.C0_host.shape)
+            self.C0.from_numpy(self.C0_host.astype(self._np))
+        self.R = ti.ndarray(ti.types.matrix(3, 3, self.real), n)
+        self.r0 = ti.ndarray(ti.types.vector(3, self.real), n + 1)      # + the total impulse
+        self.pushed = ti.ndarray(ti.i32, n + 1)                         # touched nodes with r₀ ≠ 0, + their count
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
         # costs more than it saves at a few hundred rows on 2 cores); parallel above.
-        self.serial = be.arch == "cpu" and fem.n_nodes < SERIAL_BELOW
+        self.serial = backend.current().arch == "cpu" and n < SERIAL_BELOW
+
+    def follow(self, compliance) -> None:
+        """Read A₀⁻¹ from a tissue.cutting.CuttingCompliance of this body (the same rest matrix:
+        its dt and damping must be the solver's), its lazy factors folded in a step whose rows
+        touch the body. Its C is A₀⁻¹ whole, so
+        a free body's translation is warped with the rest (the plain warping of the paper): after
+        a cut, one body may be several pieces, each with a translation of its own."""
+        solver = self.solver
+        if compliance.model is not solver.model or \
+                not np.isclose(compliance.mass_weight, 1.0 + solver.dt * solver.rayleigh_mass) or \
+                not np.isclose(compliance.stiffness_weight, solver.dt * solver.rayleigh_stiffness + solver.dt ** 2):
+            raise TissueError("contact: the cutting compliance followed must be of this body's model, at its "
+                              "solver's dt and damping")
+        self.source = compliance
+        self.follow_edits()
 
     def update_rotations(self) -> None:
         """Nodal rotations from the element rotations of the last free motion (`add_to` also
@@ -313,6 +341,9 @@ class WarpedCompliance:
         """This step's rows of H (the work is done by `add_to` or `factor`, or by `correct`
         without them)."""
         self.jds, self._ready = jds, False
+        if self.source is not None and (self.source.rank or self.source.C is not self.C0):
+            self.source.fold()              # lazy factors folded where W needs C (and C re-allocated on growth)
+            self.C0 = self.source.C
         d, real, storage = 3 * len(jds.touched), self.real, self.storage
         self.hr = storage.get("hr", jds.nnz, ti.types.matrix(3, 3, real))          # (H R) per block
         self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
@@ -379,9 +410,16 @@ class ExactCompliance:
         if factorization == "auto":
             factorization = "lu" if _cholmod is None else "cholmod"
         self.solver, self.assembly, self.factorization = solver, assembly, factorization
+        self.follow_edits()
+
+    def follow_edits(self) -> None:
+        """The free dofs of the body's current topology, and no symbolic analysis of the old one
+        (the numeric factorisation is redone every step anyway)."""
         self._symbolic, self._pattern = None, None
-        fem = solver.fem
-        self.free = free_dofs(fem.n_nodes, solver.fixed_nodes)
+        self.free = free_dofs(self.solver.fem.n_nodes, self.solver.fixed_nodes)
+
+    def follow(self, compliance) -> None:
+        """Nothing to follow: the exact compliance factorises the current matrix each step."""
 
     def factorise(self) -> None:
         """Factorise A where the free motion linearised: the solver's own assembled stiffness

@@ -453,7 +453,7 @@ class Detector:
         self.samples = [surface_samples(f, sampling) for f in self.faces]
         self.samples = [(n, w.astype(self._np)) for n, w in self.samples]
         self.obstacles = list(obstacles)
-        self.soft_soft = soft_soft
+        self.soft_soft, self.sampling = soft_soft, sampling
         prims = [o.primitives for o in self.obstacles]
         counts = [len(p) for p in prims]
         self.has_primitives = sum(counts) > 0
@@ -475,6 +475,14 @@ class Detector:
         # Small problems run each loop on one thread on the CPU: dispatching a few hundred
         # iterations to the thread pool costs more than it saves (on 2 cores, measured 2x).
         self.serial = be.arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
+
+    def set_surface(self, body: int, faces) -> None:
+        """Replace a body's surface triangles (after a topology edit); its samples follow."""
+        self.faces[body] = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
+        nodes, weights = surface_samples(self.faces[body], self.sampling)
+        self.samples[body] = (nodes, weights.astype(self._np))
+        self._bodies = None
+        self.serial = backend.current().arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
 
     def _field(self, body, positions):
         """A Taichi ndarray for numpy positions (one per body, reused); a solver's `x` as it is."""

@@ -184,15 +184,12 @@ class ContactStage:
         surfaces = [b.surface if b.surface is not None else boundary_faces(b.solver.fem.mesh.tets)
                     for b in self.bodies]
         self.detector = Detector(surfaces, self.obstacles, settings.soft_soft, settings.sampling)
-        self._fixed = []
-        for b in self.bodies:
-            mask = np.zeros(b.solver.fem.n_nodes, bool)
-            mask[b.solver.fixed_nodes] = True
-            self._fixed.append(mask)
-        # Per-body node arrays side by side (body b's nodes from _offset[b]), for vectorised lookups.
-        self._offset = np.r_[0, np.cumsum([len(f) for f in self._fixed])]
-        self._fixed_all = np.concatenate(self._fixed)
-        self._any_fixed = bool(self._fixed_all.any())
+        self._held_nodes()
+        # A topology edit of a body's model (a cut) marks its contact data stale (_follow_edits).
+        self._edited: set[int] = set()
+        self._listeners = [_Edited(self._edited, b) for b in range(len(self.bodies))]
+        for body, listener in zip(self.bodies, self._listeners):
+            body.solver.model.subscribe(listener)
         self._pose_cache = {}
         self._buffers, self._flip = [np.empty(0), np.empty(0)], 0
         self._scaled = np.empty(0)
@@ -206,6 +203,35 @@ class ContactStage:
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
         self._real, self._np = real, (np.float64 if real == ti.f64 else np.float32)
+
+    def _held_nodes(self) -> None:
+        self._fixed = []
+        for b in self.bodies:
+            mask = np.zeros(b.solver.fem.n_nodes, bool)
+            mask[b.solver.fixed_nodes] = True
+            self._fixed.append(mask)
+        # Per-body node arrays side by side (body b's nodes from _offset[b]), for vectorised lookups.
+        self._offset = np.r_[0, np.cumsum([len(f) for f in self._fixed])]
+        self._fixed_all = np.concatenate(self._fixed)
+        self._any_fixed = bool(self._fixed_all.any())
+
+    def _follow_edits(self) -> None:
+        """After topology edits (cutting): each edited body's contact surface is its model's
+        boundary now (the cut faces included), sampled anew; its compliance follows the model; the
+        held-node masks are rebuilt; and the warm start, keyed by sample ids that moved, is dropped.
+        Nothing of the previous rows is kept: the next detection builds them on the new surface."""
+        for b in sorted(self._edited):
+            self.detector.set_surface(b, self.bodies[b].solver.model.boundary_faces())
+            self.compliance[b].follow_edits()
+        self._edited.clear()
+        self._held_nodes()
+        self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
+        self._last_sweeps = 0
+
+    def follow_compliance(self, body: int, compliance) -> None:
+        """Take body `body`'s rest compliance from a tissue.cutting.CuttingCompliance (kept exact
+        through its cuts by low-rank updates) instead of inverting it anew after each cut."""
+        self.compliance[body].follow(compliance)
 
     # ---- queries ------------------------------------------------------------------------------
 
@@ -280,6 +306,9 @@ class ContactStage:
         default the stage's clock advanced by dt)."""
         s, h, stats = self.settings, self.dt, self.stats
         self.time = self.time + h if time is None else float(time)
+        if self._edited:
+            with stats.stage("topology"):
+                self._follow_edits()
         if self.instruments:
             with stats.stage("instruments"):
                 for instrument in self.instruments:
@@ -458,3 +487,13 @@ class ContactStage:
         if rows.n_rows > m:
             lam[m:] = -scipy.linalg.cho_solve(bb, q[m:] + W[m:, :m] @ lam[:m])
         return lam, info
+
+
+class _Edited:
+    """Marks body `body` stale in `edited` when its model's topology changes (BodyModel.subscribe)."""
+
+    def __init__(self, edited: set, body: int):
+        self.edited, self.body = edited, body
+
+    def topology_changed(self, edit) -> None:
+        self.edited.add(self.body)

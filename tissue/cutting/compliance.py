@@ -10,9 +10,11 @@ solved on the host:
 
   drop     dofs that stopped being free (a node left without elements): the inverse of A
            without them is C − C[:, d] C_dd⁻¹ C[d, :] (block-wise inversion read backwards);
-  correct  ΔA = Σ_added Aₑ − Σ_removed Aₑ on the dofs that stay free, written G B Gᵀ: Woodbury
-           in the form that never inverts B (indefinite, often singular):
-           (A + G B Gᵀ)⁻¹ = C − U (I + B Gᵀ U)⁻¹ B Uᵀ;
+  correct  ΔA = Σ_added Aₑ − Σ_removed Aₑ on the dofs that stay free, written G B Gᵀ, B = V Λ Vᵀ
+           on its range (an element put back with a node renamed, as a cut does, changes B's
+           size but barely its rank: its entries that cancel are dropped first): Woodbury in
+           the form that never inverts Λ, (A + G V Λ Vᵀ Gᵀ)⁻¹ = C − U (I + Λ Vᵀ Gᵀ U)⁻¹ Λ Uᵀ
+           with U = C G V;
   extend   dofs that became free (new nodes in elements): A' = [[A, E], [Eᵀ, D]], whose inverse,
            by the Schur complement S = D − Eᵀ C E, is C' = C + V S⁻¹ Vᵀ with V = [C E; −I] (C
            zero-padded to the new dofs).
@@ -33,6 +35,7 @@ from ..errors import TissueError
 from ..fem.model import BodyModel
 
 RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely folds midway
+RANK_TOLERANCE = 1e-13   # eigenvalues of a correction below this fraction of its largest: rounding
 
 
 @ti.func
@@ -119,6 +122,26 @@ def assemble(tets: np.ndarray, blocks: np.ndarray, dofs: np.ndarray) -> np.ndarr
     e, a, b = np.nonzero(inside[:, :, None] & inside[:, None, :])
     np.add.at(out, (at[e, a], at[e, b]), blocks[e, a, b])
     return out
+
+
+def cancel_moved(tets: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """The blocks (removed ones negative) with the entries that cancel exactly set to zero: an
+    element removed and put back with a node renamed (a cut separating its sides) has the same
+    block, so its entries among the nodes not renamed cancel; summed, they would leave rounding
+    that keeps the correction's rank up."""
+    blocks = blocks.copy()
+    removed: dict[bytes, list[int]] = {}
+    for i in np.flatnonzero(blocks[:, 0, 0] < 0):          # −Aₑ: a positive diagonal negated
+        removed.setdefault((-blocks[i]).tobytes(), []).append(i)
+    for j in np.flatnonzero(blocks[:, 0, 0] > 0):
+        same = removed.get(blocks[j].tobytes())
+        if same:
+            i = same.pop()
+            kept = np.repeat(tets[i] == tets[j], 3)
+            both = kept[:, None] & kept[None, :]
+            blocks[i][both] = 0.0
+            blocks[j][both] = 0.0
+    return blocks
 
 
 class CuttingCompliance:
@@ -235,10 +258,15 @@ class CuttingCompliance:
             self._add_factor(np.linalg.inv(C_dd))
             self._set_free(old & new)
         kept = np.intersect1d((3 * tets[:, :, None] + np.arange(3)).reshape(-1), np.flatnonzero(old & new))
-        B = assemble(tets, blocks, kept)
+        B = assemble(tets, cancel_moved(tets, blocks), kept)
         if np.any(B):
+            # The rank of B, not its size, sets the cost: B = V Λ Vᵀ, eigenvalues within rounding
+            # of ‖B‖ dropped, and the Woodbury step on the columns G V, with X = (I + Λ Vᵀ C_gg V)⁻¹ Λ.
+            w, V = np.linalg.eigh(B)
+            keep = np.abs(w) > RANK_TOLERANCE * np.abs(w).max()
+            w, V = w[keep], V[:, keep]
             C_gg = self._columns(kept)
-            self._add_factor(np.linalg.solve(np.eye(len(kept)) + B @ C_gg, B))
+            self._add_factor(np.linalg.solve(np.eye(len(w)) + w[:, None] * (V.T @ C_gg @ V), np.diag(w)), L=V)
         gained = np.flatnonzero(new & ~old)
         if len(gained):
             self._extend(gained, new)

@@ -141,6 +141,11 @@ class BodyModel:
     def element_capacity(self) -> int:
         return len(self._tets)
 
+    def reserve(self, nodes: int = 0, elements: int = 0) -> None:
+        """Room for this many more nodes and elements now (e.g. before cutting), so that the
+        edits to come do not grow the arrays (and what is sized by them) midway."""
+        self._reserve(nodes=nodes, elements=elements)
+
     def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
         """Room for this many more nodes and elements and slots per node, doubling what is short."""
         def grown(need, have):

@@ -35,6 +35,7 @@ class _Item:
     scalar_name: str | None = None
     framed: bool = True  # counts when framing the camera
     shadow: pv.PolyData | None = None  # its drop shadow on the ground, if there is a ground
+    reshaped: bool = False  # its faces changed since the shadow was made (a cut body)
 
 
 def _label_count(lo: float, hi: float) -> int:
@@ -152,10 +153,18 @@ class Renderer:
             self._bars.add(scalar_name)
         self._bodies[name] = _Item(mesh, actor, scalar_name if scalars is not None else None)
 
-    def update_body(self, name: str, points=None, scalars=None) -> None:
-        """New points (same count) and/or scalars for a body; the camera does not move."""
+    @property
+    def bodies(self) -> list[str]:
+        return list(self._bodies)
+
+    def update_body(self, name: str, points=None, scalars=None, faces=None) -> None:
+        """New points (same count, unless new `faces` come with them: a cut body) and/or scalars
+        for a body; the camera does not move."""
         item = self._item(self._bodies, name, "body")
-        if points is not None:
+        if faces is not None:
+            item.mesh.copy_from(_triangles(points, faces, f"body {name!r}"))
+            item.reshaped = True
+        elif points is not None:
             item.mesh.points = _same_shape(points, item.mesh, f"body {name!r}")
         if scalars is not None:
             if item.scalar_name is None:
@@ -344,6 +353,9 @@ class Renderer:
                     item.shadow = pv.PolyData(flat, item.mesh.faces)
                     self.plotter.add_mesh(item.shadow, name=f"shadow:{kind}:{name}",
                                           color=SHADOW_COLOR, lighting=False)
+                elif item.reshaped:
+                    item.shadow.copy_from(pv.PolyData(flat, item.mesh.faces))
+                    item.reshaped = False
                 else:
                     item.shadow.points = flat
                     item.shadow.Modified()

@@ -1,0 +1,144 @@
+"""The cut surface: what a blade sweeps between two steps, and the geometric queries cutting asks
+of it (which mesh edges cross it and where, how far a point is from it, on which side).
+
+A blade is a segment (a, b). Moving from (a₀, b₀) to (a₁, b₁) in one step it sweeps the bilinear
+patch a₀ b₀ b₁ a₁, kept as the two triangles (a₀, b₀, b₁) and (a₀, b₁, a₁) (exact when the patch
+is planar, as it is for a blade translated in its own plane). A predefined cut path (`CutPath`: a
+polyline traced by one end of the blade, the blade pointing along a fixed depth direction) is a
+sequence of such sweeps. A `CutSurface` accumulates every patch swept so far: an element is split
+only once the whole surface crosses it, so a cut advances element by element behind the blade.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import TissueError
+
+
+def sweep(blade_from, blade_to) -> np.ndarray:
+    """(2, 3, 3) the triangles of the patch a blade (2, 3) sweeps from one pose to the next."""
+    (a0, b0), (a1, b1) = np.asarray(blade_from, np.float64), np.asarray(blade_to, np.float64)
+    return np.array([[a0, b0, b1], [a0, b1, a1]])
+
+
+@dataclass(frozen=True)
+class CutPath:
+    """A predefined cut: the blade's top end follows `points` (a polyline, k × 3) at arc length s,
+    the blade reaching `depth` metres along the unit `direction` from it."""
+
+    points: np.ndarray
+    direction: np.ndarray
+    depth: float
+
+    def __post_init__(self):
+        points = np.asarray(self.points, np.float64).reshape(-1, 3)
+        direction = np.asarray(self.direction, np.float64).reshape(3)
+        if len(points) < 2 or not np.isfinite(points).all():
+            raise TissueError(f"cut path: needs at least 2 finite points, got {len(points)}")
+        if not np.linalg.norm(direction) > 0 or not self.depth > 0:
+            raise TissueError(f"cut path: the depth direction {direction.tolist()} and depth {self.depth} must be "
+                              "non-zero")
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "direction", direction / np.linalg.norm(direction))
+
+    @property
+    def length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum())
+
+    def blade(self, s: float) -> np.ndarray:
+        """(2, 3) the blade when its top end has travelled s metres along the path (clamped)."""
+        lengths = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        ends = np.cumsum(lengths)
+        s = float(np.clip(s, 0.0, ends[-1]))
+        k = min(int(np.searchsorted(ends, s)), len(lengths) - 1)
+        f = (s - (ends[k] - lengths[k])) / lengths[k]
+        top = (1.0 - f) * self.points[k] + f * self.points[k + 1]
+        return np.array([top, top + self.depth * self.direction])
+
+    def sweep(self, s0: float, s1: float) -> np.ndarray:
+        """(2 k, 3, 3) the triangles swept from arc length s0 to s1 (one patch per polyline piece
+        crossed, so a bend is followed exactly)."""
+        ends = np.cumsum(np.linalg.norm(np.diff(self.points, axis=0), axis=1))
+        stations = np.unique(np.r_[s0, ends[(ends > s0) & (ends < s1)], s1])
+        return np.concatenate([sweep(self.blade(a), self.blade(b)) for a, b in zip(stations[:-1], stations[1:])])
+
+
+class CutSurface:
+    """The triangles swept so far (k, 3, 3), with their unit normals."""
+
+    def __init__(self):
+        self.triangles = np.zeros((0, 3, 3))
+        self.normals = np.zeros((0, 3))
+
+    def add(self, triangles) -> None:
+        """Add swept triangles; degenerate ones (the blade did not move) are dropped."""
+        t = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        area = np.linalg.norm(n, axis=1)
+        keep = area > 1e-12 * max(float(np.ptp(t.reshape(-1, 3), axis=0).max(initial=0.0)) ** 2, 1e-300)
+        self.triangles = np.concatenate([self.triangles, t[keep]])
+        self.normals = np.concatenate([self.normals, n[keep] / area[keep, None]])
+
+    def __len__(self) -> int:
+        return len(self.triangles)
+
+    def near(self, lo, hi) -> np.ndarray:
+        """Ids of the triangles whose bounding box meets the box [lo, hi]."""
+        t = self.triangles
+        return np.flatnonzero((t.min(axis=1) <= hi).all(axis=1) & (t.max(axis=1) >= lo).all(axis=1))
+
+    def crossings(self, a: np.ndarray, b: np.ndarray, triangles=None) -> tuple[np.ndarray, np.ndarray]:
+        """Where segments a→b (k, 3) cross the surface: (t (k,), triangle (k,)) with t ∈ (0, 1) the
+        fraction from a of the first crossing, NaN (triangle −1) where none. Möller–Trumbore,
+        one segment against every given triangle (default: all)."""
+        ids = np.arange(len(self)) if triangles is None else np.asarray(triangles)
+        k = len(a)
+        t_out, tri_out = np.full(k, np.nan), np.full(k, -1)
+        if k == 0 or len(ids) == 0:
+            return t_out, tri_out
+        T = self.triangles[ids]
+        p0, e1, e2 = T[:, 0], T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
+        d = (b - a)[:, None, :]                                   # (k, 1, 3)
+        h = np.cross(d, e2[None])                                 # (k, m, 3)
+        det = np.einsum("kmi,mi->km", h, e1)
+        ok = np.abs(det) > 1e-300
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = a[:, None, :] - p0[None]
+        u = np.einsum("kmi,kmi->km", s, h) * inv
+        q = np.cross(s, e1[None])
+        v = np.einsum("kmi,kmi->km", d, q) * inv
+        t = np.einsum("mi,kmi->km", e2, q) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < 1)
+        t = np.where(hit, t, np.inf)
+        first = np.argmin(t, axis=1)
+        best = t[np.arange(k), first]
+        found = np.isfinite(best)
+        t_out[found], tri_out[found] = best[found], ids[first[found]]
+        return t_out, tri_out
+
+    def distances(self, points: np.ndarray, triangles=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(distance (k,), side (k,) ±1, nearest triangle (k,)) of points to the nearest given
+        triangle (default: all), the side that of the nearest triangle's plane (+ along its normal)."""
+        ids = np.arange(len(self)) if triangles is None else np.asarray(triangles)
+        if len(ids) == 0:
+            return np.full(len(points), np.inf), np.ones(len(points)), np.full(len(points), -1)
+        T, n = self.triangles[ids], self.normals[ids]
+        p = points[:, None, :]                                    # (k, 1, 3)
+        plane = np.einsum("kmi,mi->km", p - T[None, :, 0], n)
+        foot = p - plane[..., None] * n[None]
+        inside = np.ones(plane.shape, bool)
+        for i in range(3):                                        # the foot is left of every edge
+            a, b = T[:, i], T[:, (i + 1) % 3]
+            inside &= np.einsum("kmi,mi->km", np.cross(b - a, foot - a[None]), n) >= 0
+        distance = np.where(inside, np.abs(plane), np.inf)
+        for i in range(3):                                        # else the nearest edge point
+            a, b = T[:, i], T[:, (i + 1) % 3]
+            ab = b - a
+            f = np.clip(np.einsum("kmi,mi->km", p - a[None], ab) / np.einsum("mi,mi->m", ab, ab), 0.0, 1.0)
+            distance = np.minimum(distance, np.linalg.norm(p - (a[None] + f[..., None] * ab[None]), axis=2))
+        nearest = np.argmin(distance, axis=1)
+        rows = np.arange(len(points))
+        return distance[rows, nearest], np.where(plane[rows, nearest] >= 0, 1.0, -1.0), ids[nearest]
