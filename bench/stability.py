@@ -311,6 +311,17 @@ def classify(message: str | None, finite: bool, overshoot: float, inverted: int)
     return "inverted" if inverted > 0 else "bounded"
 
 
+def reclassify(r: dict) -> None:
+    """A stored cell's outcome by the current definitions, from its stored measures (a run before
+    these definitions called a TissueError during the run "refused" and allowed 100 energy scales)."""
+    if "energy_overshoot" not in r:      # refused before its first step, or a task error
+        return
+    finite = r.get("inverted_at_end", -1) >= 0
+    r["outcome"] = classify(r.get("message"), finite, r["energy_overshoot"], max(r.get("inverted_at_end", 0), 0))
+    if r["case"] == "material":
+        r.setdefault("self_weight_strain", 1000.0 * 9.81 * LENGTH / r["young"])
+
+
 def run_cell(cell: dict) -> dict:
     """A Dask task: initialise this worker's backend, then simulate."""
     worker_backend(cell.get("arch", "cpu"))
@@ -424,18 +435,28 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_arguments(parser)
     parser.add_argument("--quick", action="store_true", help="a 4 × 3 × 3 material matrix instead of 7 × 5 × 5")
-    parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json")
+    parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json, "
+                        "each cell's outcome classified again from its stored measures by the current definitions")
+    parser.add_argument("--only", choices=[INVERTIBLE], help="run only the cells of this rotation and replace "
+                        "them in bench/results/stability.json, keeping the others (and their run's record)")
     args = parser.parse_args(argv)
     from .common import RESULTS, write_results
 
     if args.report:
-        table = matrix_markdown(json.loads((RESULTS / "stability.json").read_text())["cells"])
+        data = json.loads((RESULTS / "stability.json").read_text())
+        for r in data["cells"]:
+            reclassify(r)
+        data["counts"] = counts(data["cells"])
+        write_results("stability", data)
+        table = matrix_markdown(data["cells"])
         (RESULTS / "stability.md").write_text(table + "\n")
         print(table)
         return
     # The longest cells (the press: ~1 s a step) first, so that the workers finish together.
     cells = contact_cells() + special_cells() + (material_cells(**QUICK) if args.quick else material_cells())
     cells += invertible_cells(**({k: QUICK[k] for k in ("poisson", "dt")} if args.quick else {}))
+    if args.only:
+        cells = [c for c in cells if c["rotation"] == args.only]
     for c in cells:
         c["arch"] = args.arch
     from bench import stability   # by its module name, so that workers import it (and keep its cache)
@@ -443,11 +464,19 @@ def main(argv=None):
     with client(args) as c:
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
-    tally = counts(results)
+    data = {"machine": info, "cells": results}
+    if args.only:   # the other cells and the record of the run that measured them stay
+        old = json.loads((RESULTS / "stability.json").read_text())
+        data = {"machine": old["machine"], f"machine_{args.only}": info,
+                "cells": [r for r in old["cells"] if r.get("rotation") != args.only] + results}
+        for r in data["cells"]:
+            reclassify(r)
+        results = data["cells"]
+    tally = data["counts"] = counts(results)
     print("outcomes:", tally)
     table = matrix_markdown(results)
 
-    write_results("stability", {"machine": info, "counts": tally, "cells": results})
+    write_results("stability", data)
     (RESULTS / "stability.md").write_text(table + "\n")
     print(table)
 
