@@ -127,13 +127,13 @@ def test_step_matches_the_direct_solve_of_polar_where_nothing_is_compressed(back
 def test_inverted_beam_recovers_to_an_equilibrium(backend, mode):
     """The stability matrix's inverted cantilevers (E 1e4 Pa, ν 0.45, dt 0.04 s, Rayleigh
     0.1/0.1, CG 25): one node pushed out through the body (6 elements inside out), or the far half
-    mirrored (108 of 240), stepped with "invertible" for 16 s. No element is left inverted, the
-    body comes to rest (speed < 1e-6 m/s), and the rest is an equilibrium of the numpy model
+    mirrored (108 of 240), stepped with "invertible" until at rest (speed < 1e-6 m/s; at most
+    60 s). No element is left inverted, and the rest is an equilibrium of the numpy model
     (bench.nonlinear_reference: internal forces balance the weight to 1e-6 of it). With the node,
     it is the equilibrium Newton finds from the rest shape, to 1e-6 of the tip's deflection. The
-    mirrored half un-inverts into another equilibrium (measured: 0.84 of the deflection away; the
-    limit's energy keeps its elements from passing back through flat where "polar" lets them, so
-    it settles where it un-inverted), which the test pins only as an equilibrium."""
+    mirrored half may un-invert into another equilibrium (the limit's energy keeps its elements
+    from passing back through flat, where "polar" lets them: with an earlier, stiffer tangent it
+    settled 0.84 of the deflection away), so the test pins it only as an equilibrium."""
     mesh = stability._mesh()
     material = Material(1e4, 0.45, 1000.0)
     cell = dict(case="inverted", mode=mode, dt=0.04, rotation="invertible")
@@ -142,8 +142,10 @@ def test_inverted_beam_recovers_to_an_equilibrium(backend, mode):
     solver = stability.solver_for(cell, mesh, material)
     solver.set_fixed(fixed)
     solver.set_state(x, v)
-    for _ in range(400):
+    for _ in range(1500):     # until at rest (measured: the mirror in < 400 steps)
         solver.step()
+        if np.abs(solver.velocities()).max() < 1e-6:
+            break
     x, v = solver.positions(), solver.velocities()
     assert (signed_volumes(x, mesh.tets) <= 0).sum() == 0
     assert np.abs(v).max() < 1e-6
