@@ -62,9 +62,16 @@ def test_stiff_nearly_incompressible_huge_step_stays_bounded_or_is_refused(backe
     assert r["outcome"] in ("bounded", "refused"), r
 
 
+ENERGY_GAIN = pytest.mark.xfail(strict=True, reason="gains energy past the 1 % allowance: README, stability matrix")
+
+
 @pytest.mark.parametrize("mode", ["smooth", "abrupt"])
-@pytest.mark.parametrize("rotation", ["large", "polar"])
-def test_half_turn_twist_stays_bounded(backend, mode, rotation):
+@pytest.mark.parametrize("rotation", ["large", "polar", "invertible"])
+def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
+    """("large", abrupt) gains 0.11 energy scales: its edge frames of the turned end face are not
+    the polar rotation (a known failure, counted in the matrix)."""
+    if (rotation, mode) == ("large", "abrupt"):
+        request.applymarker(ENERGY_GAIN)
     r = outcome(dict(case="twist", mode=mode, dt=0.04, steps=150, rotation=rotation))
     assert r["outcome"] == "bounded", r
 
@@ -97,9 +104,13 @@ def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
 
 @pytest.mark.parametrize("mode, mu, slides", [("floor", 0.0, True), ("floor", 10.0, False),
                                               ("slope", 0.1, True), ("slope", 1.0, False)])
-def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides):
+def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides, request):
     """Launched along the floor at 0.3 m/s, or released on the 25° slope (tan 25° = 0.47): in 2 s
-    it slides metres where μ allows, and stops within a few millimetres where it does not."""
+    it slides metres where μ allows, and stops within a few millimetres where it does not. On the
+    frictionless floor it gains 0.02 energy scales (Gauss-Seidel stops at its sweep cap and the
+    penetration correction lifts it: a known failure, issue 15 item 3)."""
+    if (mode, mu) == ("floor", 0.0):
+        request.applymarker(ENERGY_GAIN)
     r = outcome(dict(case="friction", mode=mode, friction=mu, dt=0.04, steps=50, rotation="polar"))
     assert r["outcome"] == "bounded" and r["contacts_max"] > 0, r
     assert r["travel"] > 0.5 if slides else r["travel"] < 0.01, r
