@@ -166,12 +166,12 @@ def accumulation_ablation(mesh) -> list[dict]:
 
 def step_ablation(mesh, fixed, gravity) -> list[dict]:
     rows = []
-    for rotation in ("large", "polar"):
+    for rotation in ("large", "polar", "invertible"):
         for accumulation in ("gather", "atomic"):
             solver = make_solver(mesh, fixed, gravity, rotation=rotation, accumulation=accumulation)
             t = time_steps(solver.step, steps_for(mesh.n_tets))
             rows.append({"rotation": rotation, "accumulation": accumulation, **t})
-            print(f"  step {rotation:>5} {accumulation:>7}: {t['median_ms']:.3f} ms", flush=True)
+            print(f"  step {rotation:>10} {accumulation:>7}: {t['median_ms']:.3f} ms", flush=True)
     return rows
 
 

@@ -13,6 +13,11 @@ Models (all on the same linear tetrahedra, same mesh, same lumped body force):
              neglects) is differenced element by element: each element's force depends on its 12
              coordinates only, so 24 vectorised force evaluations give every element's 12×12
              Jacobian to ~1e-9 relative, and Newton converges quadratically.
+  "invertible"
+             "polar" plus the compression limit of tissue.fem.corotational: per element
+             V κ/2 Σᵢ min(0, σ̂ᵢ − c)² over the signed singular values σ̂ of F (the smallest negated
+             in an inverted element), κ = COMPRESSION_STIFFNESS (λ + 2μ), c = COMPRESSION_LIMIT;
+             its force is the analytic gradient U diag(κ min(0, σ̂ − c)) Vᵀ (batched SVD).
   "linear"   the rest-shape linear model, one sparse solve.
 
 Equilibrium f_int(x) + f_ext = 0 on the free nodes by full Newton steps (sparse LU) along a load
@@ -34,7 +39,7 @@ from tissue.fem import Material
 from tissue.mesh import TetMesh
 from tissue.solver.reference import element_stiffness
 
-MODELS = ("stvk", "large", "polar", "linear")
+MODELS = ("stvk", "large", "polar", "invertible", "linear")
 
 
 @dataclass
@@ -92,6 +97,22 @@ def polar_rotations(F: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
+def compression_limit(body: Body, xe: np.ndarray):
+    """The "invertible" compression limit's element forces (m, 4, 3) and energies (m,)."""
+    from tissue.fem.corotational import COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
+
+    lam, mu = body.material.lame
+    kappa = COMPRESSION_STIFFNESS * (lam + 2 * mu)
+    U, s, Vt = np.linalg.svd(deformation_gradients(body, xe))
+    flip = np.linalg.det(U @ Vt) < 0
+    U[flip, :, -1] *= -1
+    s[flip, -1] *= -1
+    d = np.minimum(0.0, s - COMPRESSION_LIMIT)
+    V = body.mesh.volumes
+    P = np.einsum("mij,mj,mjk->mik", U, kappa * d, Vt)
+    return -V[:, None, None] * np.einsum("mij,maj->mai", P, body.grads), V * 0.5 * kappa * (d * d).sum(1)
+
+
 def edge_frames(xe: np.ndarray) -> np.ndarray:
     """Orthonormal frames (columns) of the triangles (x0, x1, x2): x along x0x1, z normal."""
     ex = xe[:, 1] - xe[:, 0]
@@ -108,6 +129,10 @@ def deformation_gradients(body: Body, xe: np.ndarray) -> np.ndarray:
 def corotational_element(body: Body, xe: np.ndarray, rotation: str):
     """Co-rotational element forces −R Kₑ (Rᵀ xₑ − Xₑ) and energies ½ uₗᵀ Kₑ uₗ."""
     m = len(xe)
+    if rotation == "invertible":
+        forces, energies = corotational_element(body, xe, "polar")
+        extra_forces, extra = compression_limit(body, xe)
+        return forces + extra_forces, energies + extra
     if rotation == "polar":
         R = polar_rotations(deformation_gradients(body, xe))
     elif rotation == "large":

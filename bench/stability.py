@@ -4,7 +4,9 @@
 
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
 1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, CG 25 iterations (SOFA's defaults),
-each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"). Cells:
+each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
+end (E ≤ 1e3 Pa), the special cells and the impacts onto a floor with "invertible" (tissue.fem:
+"polar" plus a compression limit). Cells:
   material   E 1e2 … 1e8 Pa × ν 0 … 0.499 × dt 1e-3 … 0.5 s, from rest, for max(20, 1 s / dt)
              steps (at most 1,000). The self-weight strain ρ g L / E is 9.8 at 1e2 Pa, 0.98 at
              1e3 Pa, 0.098 at 1e4 Pa: the soft end is far outside small strain on purpose;
@@ -24,14 +26,19 @@ the scene defaults: alarm distance 2 mm, tolerance 1e-6 m, 100 sweeps):
              flat by a rigid plate moving down 5 mm in 2 s then held, μ = 0.5: 2 × 361 surface
              vertices touch, 2,166 constraint rows at once (100 steps);
   impact and jerk with a floor under the cantilever (its bottom face resting on it), μ = 0.5.
-Each cell ends as
-  bounded    finite; total energy (kinetic + co-rotational elastic, measured with the polar
-             rotation, + gravity, − the work done on the body by moving obstacles) ends no higher
-             than it started (+10 % of the energy scale) and never overshoots by more than 100×
-             that scale; no element inverted at the end;
-  refused    a TissueError with its message (e.g. "the simulation diverged ...");
-  unbounded  finite but energy gained or elements left inverted (a failure, reported; whether
-             the solver warned "N elements are inverted ..." is recorded with it);
+Each cell ends as (`classify`)
+  bounded    finite at every step, and the total energy E (kinetic + elastic + gravity's
+             potential) never above its start plus the work W done on the body by external and
+             contact forces (the moving obstacles': static obstacles and fixed nodes do none) by
+             more than ALLOWANCE (1 %) of the energy scale: max over steps of E − W − E₀ ≤ 0.01
+             scale; and no element inverted at the end. The elastic energy is the model's own:
+             the polar co-rotational energy for "large" and "polar" ("large" has no energy of its
+             own: its forces are not a gradient), plus the compression limit's for "invertible";
+  refused    a TissueError before the first step, with its message (bad input);
+  diverged   a TissueError during the run (e.g. "the simulation diverged ..."): a failure;
+  inverted   bounded energy, but elements inverted at the end (a failure; whether the solver
+             warned "N elements are inverted ..." is recorded with it);
+  energy     finite but the energy rose past the allowance (a failure);
   silent-nan non-finite state without an error (must never happen).
 The energy scale is max(|E₀|, E₀ − min E, m g L) with L the body's largest extent. Writes
 bench/results/stability.json and the tables as markdown (bench/results/stability.md).
@@ -50,6 +57,9 @@ import numpy as np
 from .cluster import add_arguments, client, record, run_cells, worker_backend
 
 ROTATIONS = ("large", "polar")
+INVERTIBLE = "invertible"   # run on the soft end, the special cells and the impacts
+SOFT = (1e2, 1e3)
+ALLOWANCE = 0.01            # of the energy scale: the most E − W may rise over its start, bounded
 YOUNG = (1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8)
 POISSON = (0.0, 0.3, 0.45, 0.49, 0.499)
 STEPS = (1e-3, 1e-2, 0.04, 0.1, 0.5)
@@ -70,6 +80,12 @@ CONTACT_DISTANCE = 2e-3                     # m
 def material_cells(young=YOUNG, poisson=POISSON, dt=STEPS, rotations=ROTATIONS) -> list[dict]:
     return [dict(case="material", young=E, poisson=nu, dt=h, rotation=r)
             for r in rotations for h in dt for E in young for nu in poisson]
+
+
+def invertible_cells(young=SOFT, poisson=POISSON, dt=STEPS) -> list[dict]:
+    """The soft end, the special cells and the contact impacts and jerk with "invertible"."""
+    impacts = [c for c in contact_cells((INVERTIBLE,)) if c["case"] in ("impact", "jerk")]
+    return material_cells(young, poisson, dt, (INVERTIBLE,)) + special_cells((INVERTIBLE,)) + impacts
 
 
 def special_cells(rotations=ROTATIONS) -> list[dict]:
@@ -224,8 +240,10 @@ def simulate(cell: dict) -> dict:
     mass = body.lumped_mass
     g = np.asarray(GRAVITY)
 
+    model = "invertible" if cell.get("rotation") == INVERTIBLE else "polar"
+
     def energy(x, v):
-        return 0.5 * mass @ (v * v).sum(1) + strain_energy(body, "polar", x) - mass @ (x @ g)
+        return 0.5 * mass @ (v * v).sum(1) + strain_energy(body, model, x) - mass @ (x @ g)
 
     steps = cell.get("steps") or min(1000, max(20, math.ceil(1.0 / cell["dt"])))
     e0 = energy(x, v)
@@ -258,18 +276,13 @@ def simulate(cell: dict) -> dict:
     inverted = int((signed_volumes(x, mesh.tets) <= 0).sum()) if finite else -1
     scale = max(scale, e0 - emin)
     overshoot, net = (emax - e0) / scale, ((e - e0) / scale if finite else math.nan)
-    if message is not None:
-        outcome = "refused"
-    elif not finite:
-        outcome = "silent-nan"
-    elif overshoot > 100 or net > 0.1 or inverted > 0:
-        outcome = "unbounded"
-    else:
-        outcome = "bounded"
+    outcome = classify(message, finite, overshoot, inverted)
     out.update(outcome=outcome, message=message, steps_done=done, energy_overshoot=float(overshoot),
                energy_net=float(net), kinetic_at_end=float(0.5 * mass @ (v * v).sum(1) / scale) if finite else math.nan,
                inverted_at_end=inverted, inversion_warned=warned, cg_breakdowns=breakdowns,
                cg_residual=float(solver.stats.counters.get("cg_residual", math.nan)), seconds=time.perf_counter() - start)
+    if cell["case"] == "material":
+        out["self_weight_strain"] = material.density * 9.81 * LENGTH / material.young   # ρ g L / E
     if body_of(cell) == "beam":
         tip = mesh.points[:, 0] >= LENGTH - 1e-9
         out["tip_displacement"] = (x[tip].mean(0) - mesh.points[tip].mean(0)).tolist() if finite else [math.nan] * 3
@@ -284,6 +297,31 @@ def simulate(cell: dict) -> dict:
     return out
 
 
+def classify(message: str | None, finite: bool, overshoot: float, inverted: int) -> str:
+    """The outcome of a cell that started stepping (one refused before its first step never gets
+    here): `message`, a TissueError raised during the run; `overshoot`, the largest rise of the
+    energy less the external work over its start, in energy scales; `inverted`, elements inside
+    out at the end."""
+    if message is not None:
+        return "diverged"
+    if not finite:
+        return "silent-nan"
+    if overshoot > ALLOWANCE:
+        return "energy"
+    return "inverted" if inverted > 0 else "bounded"
+
+
+def reclassify(r: dict) -> None:
+    """A stored cell's outcome by the current definitions, from its stored measures (a run before
+    these definitions called a TissueError during the run "refused" and allowed 100 energy scales)."""
+    if "energy_overshoot" not in r:      # refused before its first step, or a task error
+        return
+    finite = r.get("inverted_at_end", -1) >= 0
+    r["outcome"] = classify(r.get("message"), finite, r["energy_overshoot"], max(r.get("inverted_at_end", 0), 0))
+    if r["case"] == "material":
+        r.setdefault("self_weight_strain", 1000.0 * 9.81 * LENGTH / r["young"])
+
+
 def run_cell(cell: dict) -> dict:
     """A Dask task: initialise this worker's backend, then simulate."""
     worker_backend(cell.get("arch", "cpu"))
@@ -292,35 +330,58 @@ def run_cell(cell: dict) -> dict:
 
 # ---- report ----------------------------------------------------------------------------------
 
-SYMBOL = {"bounded": "✓", "refused": "R", "unbounded": "✗", "silent-nan": "NaN"}
+SYMBOL = {"bounded": "✓", "refused": "R", "diverged": "D", "energy": "E", "inverted": "I", "silent-nan": "NaN"}
 
 
 def symbol(r: dict) -> str:
-    """✓, R, NaN, or for an unbounded cell I (elements left inverted; I⚠ when the solver warned
-    about it) / E (energy gained)."""
-    if r.get("outcome") == "unbounded":
-        return ("I⚠" if r.get("inversion_warned") else "I") if r["inverted_at_end"] > 0 else "E"
+    """✓, R, D, E (energy gained), NaN, or I for elements left inverted (I⚠ when the solver
+    warned about it)."""
+    if r.get("outcome") == "inverted" and r.get("inversion_warned"):
+        return "I⚠"
     return SYMBOL.get(r.get("outcome"), "error")
 
 
 def counts(results: list[dict]) -> dict:
-    """Cells per outcome, with the unbounded ones left inverted split by whether the solver warned."""
-    out = {k: sum(r.get("outcome") == k for r in results) for k in SYMBOL}
-    inverted = [r for r in results if r.get("outcome") == "unbounded" and r["inverted_at_end"] > 0]
-    out.update(inverted=len(inverted), inverted_warned=sum(bool(r.get("inversion_warned")) for r in inverted),
-               error=sum("error" in r for r in results))
+    """Cells per outcome, per rotation and in all, with the inverted ones the solver warned about."""
+    def tally(cells):
+        out = {k: sum(r.get("outcome") == k for r in cells) for k in SYMBOL}
+        out.update(cells=len(cells), inverted_warned=sum(r.get("outcome") == "inverted" and bool(r.get("inversion_warned"))
+                                                         for r in cells),
+                   contact_cells=sum("friction" in r for r in cells),
+                   contact_bounded=sum("friction" in r and r.get("outcome") == "bounded" for r in cells),
+                   error=sum("error" in r for r in cells))
+        return out
+    out = tally(results)
+    out["by_rotation"] = {rot: tally([r for r in results if r.get("rotation") == rot])
+                          for rot in sorted({r.get("rotation") for r in results})}
     return out
 
 
+TAG = "<!-- figures: bench/results/stability.json -->"   # tests/test_readme_figures.py checks these
+
+
+def counts_markdown(results: list[dict]) -> list[str]:
+    """Cells per outcome and rotation."""
+    tallies = counts(results)
+    kinds = ["bounded", "inverted", "energy", "diverged", "refused", "silent-nan"]
+    lines = [TAG, "| rotation | cells | " + " | ".join(kinds) + " | contact cells bounded |",
+             "|---|---|" + "---|" * len(kinds) + "---|"]
+    for name, t in [*tallies["by_rotation"].items(), ("all", tallies)]:
+        lines.append(f"| {name} | {t['cells']} | " + " | ".join(str(t[k]) for k in kinds)
+                     + f" | {t['contact_bounded']} of {t['contact_cells']} |")
+    return lines + [""]
+
+
 def matrix_markdown(results: list[dict]) -> str:
-    """Per rotation, a table E × ν: ✓ when bounded at every dt, else the dt that were not."""
+    """The counts, then per rotation a table E × ν: ✓ when bounded at every dt, else the dt that
+    were not; the special and contact cells one per row."""
     cells = [r for r in results if r["case"] == "material"]
-    lines = []
+    lines = counts_markdown(results)
     for rotation in sorted({r["rotation"] for r in cells}):
         mine = [r for r in cells if r["rotation"] == rotation]
         poisson = sorted({r["poisson"] for r in mine})
         steps = sorted({r["dt"] for r in mine})
-        lines += [f"**{rotation}** rotation, dt ∈ {{{', '.join(f'{h:g}' for h in steps)}}} s:", "",
+        lines += [f"**{rotation}** rotation, dt ∈ {{{', '.join(f'{h:g}' for h in steps)}}} s:", "", TAG,
                   "| E (Pa) | ρgL/E | " + " | ".join(f"ν = {nu:g}" for nu in poisson) + " |",
                   "|---|---|" + "---|" * len(poisson)]
         for E in sorted({r["young"] for r in mine}):
@@ -330,14 +391,14 @@ def matrix_markdown(results: list[dict]) -> str:
                 row.append("✓" if not bad else " ".join(f"{symbol(r)}{r['dt']:g}" for r in bad))
             lines.append(f"| {E:.0e} | {1000 * 9.81 * LENGTH / E:.2g} | " + " | ".join(row) + " |")
         lines.append("")
-    lines += ["| special cell (E 1e4, ν 0.45, dt 0.04) | rotation | outcome | inverted start → end | "
+    lines += [TAG, "| special cell (E 1e4, ν 0.45, dt 0.04) | rotation | outcome | inverted start → end | "
               "energy overshoot | note |", "|---|---|---|---|---|---|"]
     for r in results:
         if r["case"] != "material" and "friction" not in r:
             lines.append(f"| {r['case']} {r.get('mode', '')} | {r['rotation']} | {outcome(r)} | "
                          f"{r.get('inverted_at_start', '')} → {r.get('inverted_at_end', '')} | "
                          f"{r.get('energy_overshoot', math.nan):.2g}× | {note(r)} |")
-    lines += ["", "| contact cell (E 1e4, ν 0.45, dt 0.04) | μ | rotation | outcome | inverted start → end | "
+    lines += ["", TAG, "| contact cell (E 1e4, ν 0.45, dt 0.04) | μ | rotation | outcome | inverted start → end | "
               "rows (contacts) | GS its / residual (m) | penetration (mm) | energy overshoot / net / obstacle work | "
               "travel, speed at end | note |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
@@ -351,12 +412,13 @@ def matrix_markdown(results: list[dict]) -> str:
         elif "friction" in r:
             lines.append(f"| {r['case']} {r.get('mode', '')} | {r['friction']:g} | {r['rotation']} | {outcome(r)} | "
                          f"– | – | – | – | – | – | {note(r)} |")
-    lines += ["", "✓ bounded at every dt; otherwise the dt (s) of each cell that was not, marked I (unbounded: "
-              "elements left inverted at the end; I⚠: and the solver warned about it), E (unbounded: energy "
-              "gained), R (refused with a message) or NaN (silent non-finite state). Energy overshoot: the "
-              "largest rise of the total energy (less the obstacles' work) over its start, net: its change at "
-              "the end, obstacle work: the work the moving obstacles did on the body, all in energy scales. "
-              "Rows, contacts, GS iterations, residual and penetration: the largest of any step."]
+    lines += ["", f"✓ bounded at every dt; otherwise the dt (s) of each cell that was not, marked I (elements "
+              "left inverted at the end; I⚠: and the solver warned about it), E (the energy rose more than "
+              f"{ALLOWANCE:g} of its scale over its start plus the external work), D (diverged: an error during the "
+              "run), R (refused with a message before the first step) or NaN (silent non-finite state). Energy "
+              "overshoot: the largest rise of the total energy (less the obstacles' work) over its start, net: its "
+              "change at the end, obstacle work: the work the moving obstacles did on the body, all in energy "
+              "scales. Rows, contacts, GS iterations, residual and penetration: the largest of any step."]
     return "\n".join(lines)
 
 
@@ -373,17 +435,28 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_arguments(parser)
     parser.add_argument("--quick", action="store_true", help="a 4 × 3 × 3 material matrix instead of 7 × 5 × 5")
-    parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json")
+    parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json, "
+                        "each cell's outcome classified again from its stored measures by the current definitions")
+    parser.add_argument("--only", choices=[INVERTIBLE], help="run only the cells of this rotation and replace "
+                        "them in bench/results/stability.json, keeping the others (and their run's record)")
     args = parser.parse_args(argv)
     from .common import RESULTS, write_results
 
     if args.report:
-        table = matrix_markdown(json.loads((RESULTS / "stability.json").read_text())["cells"])
+        data = json.loads((RESULTS / "stability.json").read_text())
+        for r in data["cells"]:
+            reclassify(r)
+        data["counts"] = counts(data["cells"])
+        write_results("stability", data)
+        table = matrix_markdown(data["cells"])
         (RESULTS / "stability.md").write_text(table + "\n")
         print(table)
         return
     # The longest cells (the press: ~1 s a step) first, so that the workers finish together.
     cells = contact_cells() + special_cells() + (material_cells(**QUICK) if args.quick else material_cells())
+    cells += invertible_cells(**({k: QUICK[k] for k in ("poisson", "dt")} if args.quick else {}))
+    if args.only:
+        cells = [c for c in cells if c["rotation"] == args.only]
     for c in cells:
         c["arch"] = args.arch
     from bench import stability   # by its module name, so that workers import it (and keep its cache)
@@ -391,11 +464,19 @@ def main(argv=None):
     with client(args) as c:
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
-    tally = counts(results)
+    data = {"machine": info, "cells": results}
+    if args.only:   # the other cells and the record of the run that measured them stay
+        old = json.loads((RESULTS / "stability.json").read_text())
+        data = {"machine": old["machine"], f"machine_{args.only}": info,
+                "cells": [r for r in old["cells"] if r.get("rotation") != args.only] + results}
+        for r in data["cells"]:
+            reclassify(r)
+        results = data["cells"]
+    tally = data["counts"] = counts(results)
     print("outcomes:", tally)
     table = matrix_markdown(results)
 
-    write_results("stability", {"machine": info, "counts": tally, "cells": results})
+    write_results("stability", data)
     (RESULTS / "stability.md").write_text(table + "\n")
     print(table)
 

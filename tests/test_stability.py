@@ -1,5 +1,7 @@
-"""The fast cells of bench/stability.py: each stays bounded or is refused with a message, and a
-non-finite state never passes silently. (The full matrix: `python -m bench.stability`.)"""
+"""The fast cells of bench/stability.py: each stays bounded (no NaN, the energy never more than
+stability.ALLOWANCE of its scale above its start plus the external work, no element left inverted)
+or is refused before its first step with a message, and a non-finite state never passes silently.
+(The full matrix: `python -m bench.stability`.)"""
 
 import numpy as np
 import pytest
@@ -13,8 +15,45 @@ def outcome(cell):
     result = stability.simulate(cell)
     assert result["outcome"] != "silent-nan", result
     if result["outcome"] == "refused":
-        assert result["message"], result
+        assert result["message"] and "steps_done" not in result, result
     return result
+
+
+def test_outcomes_are_classified_by_the_stated_definitions():
+    """An error during the run is a divergence, not a refusal; the energy may rise at most
+    ALLOWANCE (1 %) of its scale; elements left inverted fail a cell whose energy is bounded."""
+    a = stability.ALLOWANCE
+    assert a == 0.01
+    assert stability.classify("the simulation diverged", True, 0.0, 0) == "diverged"
+    assert stability.classify(None, False, 0.0, 0) == "silent-nan"
+    assert stability.classify(None, True, 0.99 * a, 0) == "bounded"
+    assert stability.classify(None, True, 1.01 * a, 0) == "energy"
+    assert stability.classify(None, True, 1.01 * a, 3) == "energy"
+    assert stability.classify(None, True, 0.0, 3) == "inverted"
+
+
+def test_bad_input_is_refused_before_the_first_step_with_its_cause():
+    r = outcome(dict(case="material", young=1e4, poisson=0.5, dt=0.04, rotation="polar"))
+    assert r["outcome"] == "refused" and "poisson" in r["message"].lower(), r
+
+
+def test_an_error_during_the_run_is_a_divergence(backend, monkeypatch):
+    """A TissueError raised by the third step (as a diverging solve raises) fails the cell as
+    `diverged`, with its message; it is not counted as refused."""
+    from tissue.solver import ImplicitEuler
+
+    calls = []
+    step = ImplicitEuler.step
+
+    def failing(self):
+        calls.append(1)
+        if len(calls) == 3:
+            raise TissueError("the simulation diverged at step 3 (test)")
+        step(self)
+
+    monkeypatch.setattr(ImplicitEuler, "step", failing)
+    r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="polar"))
+    assert r["outcome"] == "diverged" and "diverged" in r["message"] and r["steps_done"] == 3, r
 
 
 @pytest.mark.parametrize("rotation", ["large", "polar"])
@@ -23,9 +62,16 @@ def test_stiff_nearly_incompressible_huge_step_stays_bounded_or_is_refused(backe
     assert r["outcome"] in ("bounded", "refused"), r
 
 
+ENERGY_GAIN = pytest.mark.xfail(strict=True, reason="gains energy past the 1 % allowance: README, stability matrix")
+
+
 @pytest.mark.parametrize("mode", ["smooth", "abrupt"])
-@pytest.mark.parametrize("rotation", ["large", "polar"])
-def test_half_turn_twist_stays_bounded(backend, mode, rotation):
+@pytest.mark.parametrize("rotation", ["large", "polar", "invertible"])
+def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
+    """("large", abrupt) gains 0.11 energy scales: its edge frames of the turned end face are not
+    the polar rotation (a known failure, counted in the matrix)."""
+    if (rotation, mode) == ("large", "abrupt"):
+        request.applymarker(ENERGY_GAIN)
     r = outcome(dict(case="twist", mode=mode, dt=0.04, steps=150, rotation=rotation))
     assert r["outcome"] == "bounded", r
 
@@ -38,6 +84,18 @@ def test_inverted_initial_state_recovers(backend, mode, rotation):
     assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0, r
 
 
+@pytest.mark.parametrize("young, poisson, dt", [(1e2, 0.49, 0.01), (1e3, 0.49, 0.04)])
+def test_soft_end_recovers_from_inversion_with_the_compression_limit(backend, young, poisson, dt):
+    """The soft end (ρgL/E = 9.8 and 0.98): with "polar" the hanging beam ends with elements
+    inverted (the linear co-rotational energy's minimum has them); with "invertible" it ends with
+    none and its energy bounded. (Not every soft cell: at E 1e2 Pa with ν ≤ 0.3, 2-6 elements are
+    still inverted after 1 s, and from dt 0.1 s the step gains energy: README, stability matrix.)"""
+    cell = dict(case="material", young=young, poisson=poisson, dt=dt)
+    assert outcome(dict(cell, rotation="polar"))["inverted_at_end"] > 0
+    r = outcome(dict(cell, rotation="invertible"))
+    assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0, r
+
+
 def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
     r = outcome(dict(case="jerk", mode="half-length", dt=0.04, steps=100, rotation="polar"))
     assert r["outcome"] == "bounded", r
@@ -47,9 +105,13 @@ def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
 
 @pytest.mark.parametrize("mode, mu, slides", [("floor", 0.0, True), ("floor", 10.0, False),
                                               ("slope", 0.1, True), ("slope", 1.0, False)])
-def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides):
+def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides, request):
     """Launched along the floor at 0.3 m/s, or released on the 25° slope (tan 25° = 0.47): in 2 s
-    it slides metres where μ allows, and stops within a few millimetres where it does not."""
+    it slides metres where μ allows, and stops within a few millimetres where it does not. On the
+    frictionless floor it gains 0.02 energy scales (Gauss-Seidel stops at its sweep cap and the
+    penetration correction lifts it: a known failure, issue 15 item 3)."""
+    if (mode, mu) == ("floor", 0.0):
+        request.applymarker(ENERGY_GAIN)
     r = outcome(dict(case="friction", mode=mode, friction=mu, dt=0.04, steps=50, rotation="polar"))
     assert r["outcome"] == "bounded" and r["contacts_max"] > 0, r
     assert r["travel"] > 0.5 if slides else r["travel"] < 0.01, r

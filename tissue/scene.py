@@ -141,8 +141,9 @@ class SoftBody(Options):
     poisson: float = 0.3
     density: float = 1000.0     # kg/m^3
     # co-rotational method: 'polar' stays bounded where 'large' gains energy (ν ≥ 0.45, soft
-    # materials: bench/stability.py); 'large' is SOFA's default and a little cheaper
-    rotation: Literal["large", "polar", "linear"] = "polar"
+    # materials: bench/stability.py); 'invertible' adds a compression limit that un-inverts
+    # elements; 'large' is SOFA's default and a little cheaper
+    rotation: Literal["large", "polar", "invertible", "linear"] = "polar"
     fixed: Fixed = field(default_factory=Fixed)
     position: tuple[float, float, float] = (0.0, 0.0, 0.0)      # m
     orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)   # degrees about x, y, z

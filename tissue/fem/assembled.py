@@ -24,6 +24,7 @@ import taichi as ti
 
 from .. import backend
 from ..launch import replayed
+from . import corotational
 from .model import BodyModel, Edit, real_numpy
 
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
@@ -53,6 +54,21 @@ def column(G, a):
 def pair_block(lam, mu, ga, gb, ha, hb):
     """The block (a, b) of one element: λ ĥₐ ĥᵦᵀ + μ ĥᵦ ĥₐᵀ + μ (gₐ·gᵦ) I (λ, μ times V)."""
     return (lam * ha).outer_product(hb) + (mu * hb).outer_product(ha) + mu * ga.dot(gb) * ti.Matrix.identity(float, 3)
+
+
+@ti.func
+def limit_block(m: ti.template(), w: ti.template(), e, ga, gb, rotation: ti.template()):
+    """The block (a, b) of an element's active compression limit ("invertible"):
+    V κ Σᵢ (gₐ·dᵢ)(gᵦ·dᵢ) (R dᵢ)(R dᵢ)ᵀ over its active directions dᵢ (zero elsewhere)."""
+    K = ti.Matrix.zero(float, 3, 3)
+    if ti.static(rotation == "invertible"):
+        D = w.limited[e]
+        if D.norm_sqr() > 0.0:
+            for i in ti.static(range(3)):
+                d = ti.Vector([D[0, i], D[1, i], D[2, i]])
+                K += (ga.dot(d) * gb.dot(d)) * d.outer_product(d)
+            K = (m.elastic[e][0] * corotational.limit_stiffness(m, e)) * (w.R[e] @ K @ w.R[e].transpose())
+    return K
 
 
 class _Blocks:
@@ -157,7 +173,7 @@ class BlockRows(_Blocks):
 
 
 @ti.func
-def rows_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
+def rows_assemble(m: ti.template(), w: ti.template(), a: ti.template(), rotation: ti.template()):
     for e in range(m.counts[1]):
         a.rotated[e] = w.R[e] @ a.gradients[e]
     for v in range(m.counts[0]):
@@ -172,7 +188,8 @@ def rows_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
             slots = a.slots[v * m.incidence.shape[1] + k]
             for b in ti.static(range(4)):
                 j = slots[b]  # a slot of row v: owned by this thread, so no atomic add
-                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, ga, column(grads, b), ha, column(rotated, b))
+                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, ga, column(grads, b), ha, column(rotated, b)) \
+                    + limit_block(m, w, e, ga, column(grads, b), rotation)
 
 
 @ti.func
@@ -295,7 +312,7 @@ class SymmetricBlocks(_Blocks):
 
 
 @ti.func
-def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
+def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template(), rotation: ti.template()):
     for j in range(a.block_count[0]):
         a.blocks[j] = ti.Matrix.zero(float, 3, 3)
     for v in range(m.counts[0]):
@@ -306,16 +323,16 @@ def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template()):
         lam, mu = m.elastic[e][0] * m.elastic[e][1], m.elastic[e][0] * m.elastic[e][2]
         for c in ti.static(range(4)):
             gc, hc = column(grads, c), column(rotated, c)
-            a.diagonal[t[c]] = a.diagonal[t[c]] + pair_block(lam, mu, gc, gc, hc, hc)
+            a.diagonal[t[c]] = a.diagonal[t[c]] + pair_block(lam, mu, gc, gc, hc, hc) + limit_block(m, w, e, gc, gc, rotation)
         for k in ti.static(range(6)):
             p, q = PAIRS[k]
             gp, hp, gq, hq = column(grads, p), column(rotated, p), column(grads, q), column(rotated, q)
             code = a.slots[e][k]
             j = code // 2
             if code % 2 == 0:
-                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gp, gq, hp, hq)
+                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gp, gq, hp, hq) + limit_block(m, w, e, gp, gq, rotation)
             else:
-                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gq, gp, hq, hp)
+                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gq, gp, hq, hp) + limit_block(m, w, e, gq, gp, rotation)
 
 
 @ti.func

@@ -1,6 +1,11 @@
 """Co-rotational linear tetrahedra (Felippa 2000; paper §2): element rotations, elastic forces and
 stiffness products, accumulated element -> node in one of three ways.
 
+Rotations: "large" (edge frames, SOFA's), "polar" (of F = R S; for an inverted element the closest
+proper rotation, F = U Σ̂ Vᵀ with the smallest singular value negative and R = U Vᵀ: Irving et al.
+2004), "invertible" ("polar" plus a compression limit in that diagonal frame, see
+`compression_stress`) and "linear" (none).
+
 Per element we keep only the rest shape's inverse edge matrix `Dm⁻¹`, the volume, the Lamé
 parameters and the current rotation `R` (20 numbers), not the 12×12 stiffness: the product `Kₑ u`
 is computed as stress from strain, `f_a = -V R σ(ε(Rᵀ u)) g_a`, which is exactly `R Kₑ Rᵀ u` for the
@@ -23,12 +28,21 @@ from ..mesh import TetMesh
 from .material import Material
 from .model import MODEL, BodyModel, real_numpy
 
-# The per-step work of the FEM: element rotations, the inverted-element count, and the gather
-# buffer (4 per element) or the atomic accumulator (per node), whichever the accumulation uses.
-FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), inverted=ti.types.ndarray(), buffer=ti.types.ndarray(),
-                            accumulator=ti.types.ndarray())
+# The per-step work of the FEM: element rotations, the principal directions (columns, rotated
+# frame) in which each element's compression limit is active ("invertible"; zero otherwise), the
+# inverted-element count, and the gather buffer (4 per element) or the atomic accumulator (per
+# node), whichever the accumulation uses.
+FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), limited=ti.types.ndarray(), inverted=ti.types.ndarray(),
+                            buffer=ti.types.ndarray(), accumulator=ti.types.ndarray())
 
-ROTATIONS = ("large", "polar", "linear")
+ROTATIONS = ("large", "polar", "invertible", "linear")
+# The compression limit of "invertible": below COMPRESSION_LIMIT, a principal stretch σ̂ᵢ of the
+# rotated deformation RᵀF = V Σ̂ Vᵀ (σ̂ negative in an inverted element) pays the extra energy
+# V κ/2 (c − σ̂ᵢ)² with κ = COMPRESSION_STIFFNESS (λ + 2μ). Linear co-rotational energy is finite
+# at σ̂ = 0, so a load of the order of E leaves elements inverted at its minimum (the hanging
+# 240-tet cantilever at E = 1e2 Pa, ν = 0.3: 156 of 240); with this limit the minimum has none.
+COMPRESSION_LIMIT = 0.3
+COMPRESSION_STIFFNESS = 10.0
 ACCUMULATIONS = ("gather", "atomic", "colouring")
 
 
@@ -68,14 +82,100 @@ def edge_frame(a, b, c):
 
 
 @ti.func
+def symmetric_eigen(A):
+    """Eigenvalues (a vector) and orthonormal eigenvectors (columns) of a symmetric 3×3 matrix by
+    cyclic Jacobi rotations: square roots only, to round-off in a few sweeps."""
+    D, V = A, ti.Matrix.identity(float, 3)
+    for _ in range(12):
+        off = D[0, 1] ** 2 + D[0, 2] ** 2 + D[1, 2] ** 2
+        if off <= 1e-32 * D.norm_sqr():
+            break
+        for k in ti.static(range(3)):
+            p, q = ti.static(((0, 1), (0, 2), (1, 2))[k])
+            if D[p, q] != 0.0:
+                theta = (D[q, q] - D[p, p]) / (2.0 * D[p, q])
+                t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / ti.sqrt(t * t + 1.0)
+                J = ti.Matrix.identity(float, 3)
+                J[p, p], J[q, q], J[p, q], J[q, p] = c, c, c * t, -c * t
+                D = J.transpose() @ D @ J
+                V = V @ J
+    return ti.Vector([D[0, 0], D[1, 1], D[2, 2]]), V
+
+
+@ti.func
+def compressed(S):
+    """Whether the symmetric S has an eigenvalue below the compression limit c: S − cI is not
+    positive definite (Sylvester's leading minors), a few flops for the common case."""
+    c = COMPRESSION_LIMIT
+    a, d, f = S[0, 0] - c, S[1, 1] - c, S[2, 2] - c
+    minor2 = a * d - S[0, 1] * S[0, 1]
+    det = a * (d * f - S[1, 2] * S[1, 2]) - S[0, 1] * (S[0, 1] * f - S[1, 2] * S[0, 2]) \
+        + S[0, 2] * (S[0, 1] * S[1, 2] - d * S[0, 2])
+    return not (a > 0.0 and minor2 > 0.0 and det > 0.0)
+
+
+@ti.func
+def limit_stiffness(m: ti.template(), e):
+    """κ of the compression limit: COMPRESSION_STIFFNESS (λ + 2μ)."""
+    return COMPRESSION_STIFFNESS * (m.elastic[e][1] + 2.0 * m.elastic[e][2])
+
+
+@ti.func
+def limited_directions(S):
+    """The eigenvectors of the symmetric S whose eigenvalue is below the limit, as columns (the
+    others zero)."""
+    values, V = symmetric_eigen(S)
+    D = ti.Matrix.zero(float, 3, 3)
+    for i in ti.static(range(3)):
+        if values[i] < COMPRESSION_LIMIT:
+            for j in ti.static(range(3)):
+                D[j, i] = V[j, i]
+    return D
+
+
+@ti.func
+def limit_tangent_stress(m: ti.template(), w: ti.template(), e, G):
+    """The compression limit's tangent: κ Σᵢ (dᵢᵀ ε dᵢ) dᵢ dᵢᵀ over its active directions dᵢ
+    (the directions held fixed over the step, as the rotation is)."""
+    D = w.limited[e]
+    P = ti.Matrix.zero(float, 3, 3)
+    if D.norm_sqr() > 0.0:
+        eps = 0.5 * (G + G.transpose())
+        for i in ti.static(range(3)):
+            d = ti.Vector([D[0, i], D[1, i], D[2, i]])
+            P += d.dot(eps @ d) * d.outer_product(d)
+        P *= limit_stiffness(m, e)
+    return P
+
+
+@ti.func
+def compression_stress(m: ti.template(), e, S):
+    """The compression limit's stress in the rotated frame, Σᵢ κ min(0, σ̂ᵢ − c) vᵢ vᵢᵀ, for
+    S = sym(RᵀF) = V Σ̂ Vᵀ: the derivative of V κ/2 Σᵢ min(0, σ̂ᵢ − c)², whose gradient in F is
+    R V diag(κ min(0, σ̂ᵢ − c)) Vᵀ (Irving et al. 2004, P = U P̂(Σ̂) Vᵀ). Pushes an inverted
+    element's negative σ̂ back up through zero."""
+    kappa = limit_stiffness(m, e)
+    values, V = symmetric_eigen(S)
+    P = ti.Matrix.zero(float, 3, 3)
+    for i in ti.static(range(3)):
+        vi = ti.Vector([V[0, i], V[1, i], V[2, i]])
+        P += kappa * ti.min(0.0, values[i] - COMPRESSION_LIMIT) * vi.outer_product(vi)
+    return P
+
+
+@ti.func
 def polar_rotation(F, tol):
     """Rotation of the polar decomposition F = R S by Higham's scaled Newton iteration.
 
     The scaling ζ = sqrt(‖X⁻¹‖/‖X‖) (Frobenius) needs only a square root, which every backend has
     in float64 (Vulkan's GLSL has no 64-bit pow, exp or trigonometry). An inverted element
     (det F < 0) gets the closest proper rotation: the orthogonal factor is reflected along the
-    eigenvector of S with the smallest eigenvalue (Irving et al. 2004), found by inverse iteration
-    (S is symmetric positive definite there).
+    eigenvector of S with the smallest eigenvalue (Irving et al. 2004), found by Jacobi rotations
+    (exact to round-off however close the eigenvalues; inverse iteration converged too slowly for
+    an element mirrored whole, whose stretches are all near 1).
     """
     X = F
     for _ in range(30):
@@ -88,10 +188,12 @@ def polar_rotation(F, tol):
             break
     if F.determinant() < 0:
         S = X.transpose() @ F
-        S_inv = (0.5 * (S + S.transpose())).inverse()
-        v = ti.Vector([0.8, 0.5, 0.33]).normalized()
-        for _ in range(100):
-            v = (S_inv @ v).normalized()
+        values, V = symmetric_eigen(0.5 * (S + S.transpose()))
+        smallest = 0
+        for i in ti.static(range(1, 3)):
+            if values[i] < values[smallest]:
+                smallest = i
+        v = ti.Vector([V[0, smallest], V[1, smallest], V[2, smallest]])
         X = X @ (ti.Matrix.identity(float, 3) - 2.0 * v.outer_product(v))
     return X
 
@@ -139,7 +241,7 @@ def element_rotation(m: ti.template(), e, x: ti.template(), rotation: ti.templat
     if ti.static(rotation == "large"):
         t = m.tets[e]
         R = edge_frame(x[t[0]], x[t[1]], x[t[2]]) @ m.rest_frame[e].transpose()
-    elif ti.static(rotation == "polar"):
+    elif ti.static(rotation == "polar" or rotation == "invertible"):
         F = deformation_gradient(m, e, x)
         if ti.abs(F.determinant()) > 1e-6:
             R = polar_rotation(F, tol)
@@ -165,22 +267,44 @@ def nodal_forces(m: ti.template(), R, e, G):
 
 
 @ti.func
-def elastic_force(m: ti.template(), w: ti.template(), e, x: ti.template()):
-    """-R Kₑ (Rᵀ x - X) on the element's nodes, as a 3×3 (nodes 1..3; node 0 = -sum)."""
-    R = w.R[e]
-    G = R.transpose() @ deformation_gradient(m, e, x) - ti.Matrix.identity(float, 3)
-    return nodal_forces(m, R, e, G)
+def element_stress(m: ti.template(), e, R, F):
+    """The rotated-frame stress of the element at F: linear in RᵀF − I, plus the compression
+    limit's where it is active."""
+    G = R.transpose() @ F - ti.Matrix.identity(float, 3)
+    sigma = linear_stress(m, e, G)
+    S = 0.5 * (G + G.transpose()) + ti.Matrix.identity(float, 3)
+    if compressed(S):
+        sigma += compression_stress(m, e, S)
+    return sigma
 
 
 @ti.func
-def stiffness_product(m: ti.template(), w: ti.template(), e, p: ti.template()):
-    """-R Kₑ Rᵀ p on the element's nodes (the tangent stiffness times p, with its sign)."""
+def elastic_force(m: ti.template(), w: ti.template(), e, x: ti.template(), rotation: ti.template()):
+    """-R Kₑ (Rᵀ x - X) on the element's nodes, as a 3×3 (nodes 1..3; node 0 = -sum), plus the
+    compression limit's force where the last rotation update found it active."""
     R = w.R[e]
-    return nodal_forces(m, R, e, R.transpose() @ deformation_gradient(m, e, p))
+    F = deformation_gradient(m, e, x)
+    H = nodal_forces(m, R, e, R.transpose() @ F - ti.Matrix.identity(float, 3))
+    if ti.static(rotation == "invertible"):
+        if w.limited[e].norm_sqr() > 0.0:
+            H = -m.elastic[e][0] * R @ element_stress(m, e, R, F) @ m.Dm_inv[e].transpose()
+    return H
 
 
 @ti.func
-def diagonal_block(m: ti.template(), w: ti.template(), e, corner):
+def stiffness_product(m: ti.template(), w: ti.template(), e, p: ti.template(), rotation: ti.template()):
+    """-R Kₑ Rᵀ p on the element's nodes (the tangent stiffness times p, with its sign), with the
+    compression limit's tangent where it is active (so the step is implicit in it too)."""
+    R = w.R[e]
+    G = R.transpose() @ deformation_gradient(m, e, p)
+    H = nodal_forces(m, R, e, G)
+    if ti.static(rotation == "invertible"):
+        H -= m.elastic[e][0] * R @ limit_tangent_stress(m, w, e, G) @ m.Dm_inv[e].transpose()
+    return H
+
+
+@ti.func
+def diagonal_block(m: ti.template(), w: ti.template(), e, corner, rotation: ti.template()):
     """The element's 3×3 stiffness block R Kₐₐ Rᵀ of one corner (for block-Jacobi)."""
     Dt = m.Dm_inv[e].transpose()
     g = ti.Vector([0.0, 0.0, 0.0])
@@ -191,6 +315,12 @@ def diagonal_block(m: ti.template(), w: ti.template(), e, corner):
         g = ti.Vector([Dt[0, corner - 1], Dt[1, corner - 1], Dt[2, corner - 1]])
     V, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
     K = V * ((lam + mu) * g.outer_product(g) + mu * g.dot(g) * ti.Matrix.identity(float, 3))
+    if ti.static(rotation == "invertible"):
+        D = w.limited[e]
+        if D.norm_sqr() > 0.0:
+            for i in ti.static(range(3)):
+                d = ti.Vector([D[0, i], D[1, i], D[2, i]])
+                K += (V * limit_stiffness(m, e) * g.dot(d) ** 2) * d.outer_product(d)
     return w.R[e] @ K @ w.R[e].transpose()
 
 
@@ -199,11 +329,19 @@ def diagonal_block(m: ti.template(), w: ti.template(), e, corner):
 
 @ti.func
 def update_rotations(m: ti.template(), w: ti.template(), x: ti.template(), rotation: ti.template(), tol):
-    """Element rotations at x, and the count of inverted elements (det F ≤ 0): linear
-    co-rotational elements have no inversion barrier, so a caller should hear of them."""
+    """Element rotations at x, where the compression limit is active ("invertible"), and the
+    count of inverted elements (det F ≤ 0): a caller should hear of them."""
     w.inverted[0] = 0
     for e in range(m.counts[1]):
-        w.R[e] = element_rotation(m, e, x, rotation, tol)
+        R = element_rotation(m, e, x, rotation, tol)
+        w.R[e] = R
+        D = ti.Matrix.zero(float, 3, 3)
+        if ti.static(rotation == "invertible"):
+            G = R.transpose() @ deformation_gradient(m, e, x)
+            S = 0.5 * (G + G.transpose())
+            if compressed(S):
+                D = limited_directions(S)
+        w.limited[e] = D
         t = m.tets[e]
         if (x[t[1]] - x[t[0]]).dot((x[t[2]] - x[t[0]]).cross(x[t[3]] - x[t[0]])) <= 0:
             w.inverted[0] += 1
@@ -231,24 +369,25 @@ def _deposit(m: ti.template(), w: ti.template(), e, H, accumulation: ti.template
 
 @ti.func
 def scatter_element(m: ti.template(), w: ti.template(), what: ti.template(), e, src: ti.template(),
-                    accumulation: ti.template()):
+                    accumulation: ti.template(), rotation: ti.template()):
     """One element's part of `what` ("force": elastic forces at positions src; "stiffness":
     tangent stiffness times src), handed to the accumulation."""
     H = ti.Matrix.zero(float, 3, 3)
     if ti.static(what == "force"):
-        H = elastic_force(m, w, e, src)
+        H = elastic_force(m, w, e, src, rotation)
     else:
-        H = stiffness_product(m, w, e, src)
+        H = stiffness_product(m, w, e, src, rotation)
     _deposit(m, w, e, H, accumulation)
 
 
 @ti.func
-def scatter(m: ti.template(), w: ti.template(), what: ti.template(), src: ti.template(), accumulation: ti.template()):
+def scatter(m: ti.template(), w: ti.template(), what: ti.template(), src: ti.template(), accumulation: ti.template(),
+            rotation: ti.template()):
     """Element stage of `what`; its nodal sums are then read with `gathered(v)`.
     Colouring is not fused here: it needs a launch per colour (see `scatter_launch`)."""
     ti.static_assert(accumulation != "colouring")
     for e in range(m.counts[1]):
-        scatter_element(m, w, what, e, src, accumulation)
+        scatter_element(m, w, what, e, src, accumulation, rotation)
 
 
 @ti.func
@@ -265,12 +404,12 @@ def gathered(m: ti.template(), w: ti.template(), v, accumulation: ti.template())
 
 
 @ti.func
-def stiffness_diagonal(m: ti.template(), w: ti.template(), v):
+def stiffness_diagonal(m: ti.template(), w: ti.template(), v, rotation: ti.template()):
     """Σ over incident elements of R Kₐₐ Rᵀ at vertex v."""
     K = ti.Matrix.zero(float, 3, 3)
     for k in range(m.valence[v]):
         c = m.incidence[v, k]
-        K += diagonal_block(m, w, c // 4, c % 4)
+        K += diagonal_block(m, w, c // 4, c % 4, rotation)
     return K
 
 
@@ -283,15 +422,16 @@ def _rotations_kernel(m: MODEL, w: FEM_WORK, x: ti.types.ndarray(), rotation: ti
 
 
 @ti.kernel
-def _scatter_kernel(m: MODEL, w: FEM_WORK, what: ti.template(), src: ti.types.ndarray(), accumulation: ti.template()):
-    scatter(m, w, what, src, accumulation)
+def _scatter_kernel(m: MODEL, w: FEM_WORK, what: ti.template(), src: ti.types.ndarray(), accumulation: ti.template(),
+                    rotation: ti.template()):
+    scatter(m, w, what, src, accumulation, rotation)
 
 
 @ti.kernel
 def _scatter_colour_kernel(m: MODEL, w: FEM_WORK, what: ti.template(), src: ti.types.ndarray(),
-                           order: ti.types.ndarray(), begin: ti.i32, end: ti.i32):
+                           order: ti.types.ndarray(), begin: ti.i32, end: ti.i32, rotation: ti.template()):
     for i in range(begin, end):
-        scatter_element(m, w, what, order[i], src, "colouring")
+        scatter_element(m, w, what, order[i], src, "colouring", rotation)
 
 
 @ti.kernel
@@ -304,8 +444,11 @@ def _gather_kernel(m: MODEL, w: FEM_WORK, out: ti.types.ndarray(), accumulation:
 def _stress_kernel(m: MODEL, x: ti.types.ndarray(), out: ti.types.ndarray(), rotation: ti.template(), tol: ti.f64):
     for e in range(m.counts[1]):
         R = element_rotation(m, e, x, rotation, tol)
-        G = R.transpose() @ deformation_gradient(m, e, x) - ti.Matrix.identity(float, 3)
-        out[e] = R @ linear_stress(m, e, G) @ R.transpose()
+        F = deformation_gradient(m, e, x)
+        sigma = linear_stress(m, e, R.transpose() @ F - ti.Matrix.identity(float, 3))
+        if ti.static(rotation == "invertible"):
+            sigma = element_stress(m, e, R, F)
+        out[e] = R @ sigma @ R.transpose()
 
 
 class CorotationalFEM:
@@ -345,7 +488,7 @@ class CorotationalFEM:
         n, m = model.node_capacity, model.element_capacity
         self.R = ti.ndarray(mat3, m)      # every step recomputes the rotations before using them
         self.R.from_numpy(np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1)))
-        self.work_arrays = dict(R=self.R, inverted=ti.ndarray(ti.i32, 1),
+        self.work_arrays = dict(R=self.R, limited=ti.ndarray(mat3, m), inverted=ti.ndarray(ti.i32, 1),
                                 buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
                                 accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
         self.work = FEM_WORK(**self.work_arrays)
@@ -390,9 +533,9 @@ class CorotationalFEM:
         if self.accumulation == "colouring":
             order, offsets = self._colours()
             for c in range(len(offsets) - 1):
-                _scatter_colour_kernel(m, self.work, what, src, order, offsets[c], offsets[c + 1])
+                _scatter_colour_kernel(m, self.work, what, src, order, offsets[c], offsets[c + 1], self.rotation)
         else:
-            _scatter_kernel(m, self.work, what, src, self.accumulation)
+            _scatter_kernel(m, self.work, what, src, self.accumulation, self.rotation)
 
     def _colours(self):
         if self._colouring is None:

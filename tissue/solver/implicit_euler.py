@@ -436,7 +436,7 @@ def _preconditioned(k: ti.template(), o: ti.template(), v, r):
 def multiply(k: ti.template(), o: ti.template(), src: ti.template()):
     """The pass that a product needs before `_stiffness_times(v, src)` can read node v."""
     if ti.static(o.operator == "matrix_free"):
-        corotational.scatter(k, k, "stiffness", src, o.accumulation)
+        corotational.scatter(k, k, "stiffness", src, o.accumulation, o.rotation)
     elif ti.static(o.layout == "symmetric"):
         assembled.symmetric_multiply(k, k, src)
 
@@ -474,7 +474,7 @@ def operator_row(k: ti.template(), o: ti.template(), v, src: ti.template(), mass
 def _stiffness_diagonal(k: ti.template(), o: ti.template(), v):
     K = ti.Matrix.zero(float, 3, 3)
     if ti.static(o.operator == "matrix_free"):
-        K = corotational.stiffness_diagonal(k, k, v)
+        K = corotational.stiffness_diagonal(k, k, v, o.rotation)
     elif ti.static(o.layout == "symmetric"):
         K = k.diagonal[v]
     else:
@@ -507,14 +507,14 @@ def _begin(k: ti.template(), o: ti.template(), tol):
     corotational.update_rotations(k, k, k.x, o.rotation, tol)
     if ti.static(o.operator == "assembled"):
         if ti.static(o.layout == "symmetric"):
-            assembled.symmetric_assemble(k, k, k)
+            assembled.symmetric_assemble(k, k, k, o.rotation)
         else:
-            assembled.rows_assemble(k, k, k)
+            assembled.rows_assemble(k, k, k, o.rotation)
     if ti.static(o.preconditioner == "multigrid"):
         multigrid.update_rotations(k, tol)
         for _ in range(1):  # the V-cycle's loops run while DONE is 0
             k.scalars[DONE] = 0
-    corotational.scatter(k, k, "force", k.x, o.accumulation)
+    corotational.scatter(k, k, "force", k.x, o.accumulation, o.rotation)
     for v in range(k.counts[0]):  # the forces f(x, v), kept in r until the right-hand side is complete
         mv = k.mass[v]
         k.r[v] = corotational.gathered(k, k, v, o.accumulation) + mv * g + k.external[v] \
@@ -556,7 +556,7 @@ def _iteration(k: ti.template(), o: ti.template()):
     if ti.static(o.operator == "matrix_free"):
         for e in range(k.counts[1]):  # element stage, skipped once converged
             if k.scalars[DONE] == 0:
-                corotational.scatter_element(k, k, "stiffness", e, k.p, o.accumulation)
+                corotational.scatter_element(k, k, "stiffness", e, k.p, o.accumulation, o.rotation)
     elif ti.static(o.layout == "symmetric"):
         assembled.symmetric_multiply(k, k, k.p)  # serial only (rows multiply on demand)
     mass_factor, stiffness_factor = factors(k)
