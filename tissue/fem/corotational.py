@@ -189,11 +189,12 @@ def polar_rotation(F, tol):
     if F.determinant() < 0:
         S = X.transpose() @ F
         values, V = symmetric_eigen(0.5 * (S + S.transpose()))
-        smallest = 0
+        # The column of the smallest eigenvalue, chosen among static indices: a runtime index
+        # into a local matrix breaks the SPIR-V (Vulkan) compile.
+        smallest, v = values[0], ti.Vector([V[0, 0], V[1, 0], V[2, 0]])
         for i in ti.static(range(1, 3)):
-            if values[i] < values[smallest]:
-                smallest = i
-        v = ti.Vector([V[0, smallest], V[1, smallest], V[2, smallest]])
+            if values[i] < smallest:
+                smallest, v = values[i], ti.Vector([V[0, i], V[1, i], V[2, i]])
         X = X @ (ti.Matrix.identity(float, 3) - 2.0 * v.outer_product(v))
     return X
 
