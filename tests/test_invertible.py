@@ -108,6 +108,9 @@ def test_inverted_element_is_pushed_toward_uninverting(backend, rotation):
     np.testing.assert_allclose(f, internal_forces(body, rotation, x), rtol=0, atol=1e-9 * np.abs(f).max())
 
 
+# The tests that step a solver with "invertible" compile its whole step, for minutes on this
+# machine (the eigen-solves inline in every kernel): slow set. The element's tests above run by default.
+@pytest.mark.slow
 def test_step_matches_the_direct_solve_of_polar_where_nothing_is_compressed(backend):
     """Reference: scipy's direct solve of the "polar" step (tissue.solver.reference) from a state
     with no element past the limit, where the two elements are one: 1e-8 relative, as
@@ -123,6 +126,7 @@ def test_step_matches_the_direct_solve_of_polar_where_nothing_is_compressed(back
     assert np.linalg.norm(sim.velocities() - v_ref) <= 1e-8 * np.linalg.norm(v_ref)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["node", "mirror"])
 def test_inverted_beam_recovers_to_an_equilibrium(backend, mode):
     """The stability matrix's inverted cantilevers (E 1e4 Pa, ν 0.45, dt 0.04 s, Rayleigh
