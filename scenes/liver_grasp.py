@@ -2,10 +2,10 @@
 
 from dataclasses import dataclass, field
 
-from scenes.liver_press import rib_segments
+from scenes.liver_press import abdominal_contact, abdominal_liver, abdominal_solver, abdominal_stomach, ribs
 from tissue.contact import Contact, Obstacle
 from tissue.haptics.layer import Haptics, Tool
-from tissue.scene import Fixed, Render, Scene, Solver, SoftBody
+from tissue.scene import Render, Scene, Solver, SoftBody
 
 # The device's path (t, x, y, z, jaw opening): from beside the left lobe's tip, jaws 6 cm open
 # above and below it, in along -x, closed on the lobe, pulled 2.5 cm posterior and 2 cm down
@@ -39,22 +39,14 @@ class LiverGrasp(Scene):
 
     dt: float = 0.04
     duration: float = 4.0
-    liver: SoftBody = field(default_factory=lambda: SoftBody(
-        mesh="liver", tets=1300, young=3000.0, poisson=0.45, density=300.0,
-        fixed=Fixed(region=(0.0, 1.0, 0.0, 1.0, 0.8, 1.0))))
-    stomach: SoftBody = field(default_factory=lambda: SoftBody(
-        mesh="stomach", tets=800, young=4000.0, poisson=0.45, density=300.0,
-        fixed=Fixed(region=(0.0, 1.0, 0.45, 1.0, 0.0, 1.0))))
-    ribs: Obstacle = field(default_factory=lambda: Obstacle(shape="capsules", radius=0.006, segments=rib_segments(),
-                                                            color="#e4d8bd"))
+    liver: SoftBody = field(default_factory=abdominal_liver)
+    stomach: SoftBody = field(default_factory=abdominal_stomach)
+    ribs: Obstacle = field(default_factory=ribs)
     grasper: Tool = field(default_factory=lambda: Tool(
         kind="grasper", keyframes=_path(), jaw_length=0.024, radius=0.004, mass=0.005, damping=2.0, stiffness=300.0,
         friction=0.8))
-    contact: Contact = field(default_factory=lambda: Contact(
-        friction=0.3, distance=3e-3, compliance="warped", tolerance=1e-6, max_iterations=100, sampling="faces"))
+    contact: Contact = field(default_factory=abdominal_contact)
     haptics: Haptics = field(default_factory=Haptics)
-    # liver_press's bodies and its solver settings (each step solved to ‖r‖/‖b‖ ≤ 1e-3).
-    solver: Solver = field(default_factory=lambda: Solver(
-        cg_iterations=100, cg_tolerance=1e-3, preconditioner="multigrid", rayleigh_mass=0.1, rayleigh_stiffness=0.05))
+    solver: Solver = field(default_factory=abdominal_solver)
     render: Render = field(default_factory=lambda: Render(
         every=2, figure=0.5, title="Liver grasped and pulled against the stomach and ribs"))

@@ -29,6 +29,33 @@ def rib_segments(centre=(-0.04, 0.0), arcs=((-0.015, 0.0952), (0.005, 0.0979), (
     return tuple(round(c, 5) for c in out)
 
 
+# The abdomen this scene and liver_grasp share: the liver hung from its upper fifth, the stomach
+# held by its posterior part, the ribs, contact on face-sampled points with compliance warping.
+def abdominal_liver() -> SoftBody:
+    return SoftBody(mesh="liver", tets=1300, young=3000.0, poisson=0.45, density=300.0,
+                    fixed=Fixed(region=(0.0, 1.0, 0.0, 1.0, 0.8, 1.0)))
+
+
+def abdominal_stomach() -> SoftBody:
+    return SoftBody(mesh="stomach", tets=800, young=4000.0, poisson=0.45, density=300.0,
+                    fixed=Fixed(region=(0.0, 1.0, 0.45, 1.0, 0.0, 1.0)))
+
+
+def ribs() -> Obstacle:
+    return Obstacle(shape="capsules", radius=0.006, segments=rib_segments(), color="#e4d8bd")
+
+
+def abdominal_contact() -> Contact:
+    return Contact(friction=0.3, distance=3e-3, compliance="warped", tolerance=1e-6, max_iterations=100,
+                   sampling="faces")
+
+
+def abdominal_solver() -> Solver:
+    """Each step solved to ‖r‖/‖b‖ ≤ 1e-3, by the cheapest setting of python -m bench.scene_defaults."""
+    return Solver(cg_iterations=100, cg_tolerance=1e-3, preconditioner="multigrid", rayleigh_mass=0.1,
+                  rayleigh_stiffness=0.05)
+
+
 def _probe_path() -> tuple[float, ...]:
     n = math.sqrt(sum(c * c for c in PUSH))
     end = tuple(TRAVEL * c / n for c in PUSH)
@@ -51,21 +78,13 @@ class LiverPress(Scene):
 
     dt: float = 0.04
     duration: float = 3.2
-    liver: SoftBody = field(default_factory=lambda: SoftBody(
-        mesh="liver", tets=1300, young=3000.0, poisson=0.45, density=300.0,
-        fixed=Fixed(region=(0.0, 1.0, 0.0, 1.0, 0.8, 1.0))))
-    stomach: SoftBody = field(default_factory=lambda: SoftBody(
-        mesh="stomach", tets=800, young=4000.0, poisson=0.45, density=300.0,
-        fixed=Fixed(region=(0.0, 1.0, 0.45, 1.0, 0.0, 1.0))))
-    ribs: Obstacle = field(default_factory=lambda: Obstacle(shape="capsules", radius=0.006, segments=rib_segments(),
-                                                            color="#e4d8bd"))
+    liver: SoftBody = field(default_factory=abdominal_liver)
+    stomach: SoftBody = field(default_factory=abdominal_stomach)
+    ribs: Obstacle = field(default_factory=ribs)
     probe: Obstacle = field(default_factory=lambda: Obstacle(
         shape="sphere", centre=PROBE_START, radius=PROBE_RADIUS, keyframes=_probe_path(), color="#7f8c9c"))
-    contact: Contact = field(default_factory=lambda: Contact(
-        friction=0.3, distance=3e-3, compliance="warped", tolerance=1e-6, max_iterations=100, sampling="faces"))
-    # Each step solved to ‖r‖/‖b‖ ≤ 1e-3, by the cheapest setting of python -m bench.scene_defaults.
-    solver: Solver = field(default_factory=lambda: Solver(
-        cg_iterations=100, cg_tolerance=1e-3, preconditioner="multigrid", rayleigh_mass=0.1, rayleigh_stiffness=0.05))
+    contact: Contact = field(default_factory=abdominal_contact)
+    solver: Solver = field(default_factory=abdominal_solver)
     # The figure at t = 1.6 s (4 cm into the push): beyond, the thin lobe's coarse tetrahedra are
     # crushed between probe and stomach and the smooth surface drawn over them wrinkles.
     render: Render = field(default_factory=lambda: Render(
