@@ -31,7 +31,6 @@ def test_preconditioner_is_symmetric_positive_definite(solver):
     assert eigenvalues.min() > 1e-3 * eigenvalues.max()
 
 
-@pytest.mark.slow   # 70 s from an empty cache (two 100,000-cap solvers): the default run stays under 10 min
 def test_multigrid_needs_far_fewer_iterations_on_a_slender_beam(backend):
     """Reference: the stiff quasi-static cantilever of test_solver (40 cells along, 410 nodes,
     condition number ~10⁵) solved to ‖r‖/‖b‖ ≤ 1e-10 with block-Jacobi and with multigrid: both
