@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from bench.common import ROOT
+from tissue.contact.constraints import tangent_frames
 
 PROBLEMS = ROOT / "bench" / "problems"
 
@@ -60,15 +61,6 @@ def load(path: Path) -> dict:
 
 # ---- generated: rigid boxes ---------------------------------------------------------------------
 
-def _frame(n):
-    """Rows (n, t1, t2) of an orthonormal contact frame with normal n."""
-    n = np.asarray(n, float) / np.linalg.norm(n)
-    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-    t1 = np.cross(n, a)
-    t1 /= np.linalg.norm(t1)
-    return np.array([n, t1, np.cross(n, t1)])
-
-
 def _skew(p):
     return np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
 
@@ -86,7 +78,7 @@ def rigid_problem(bodies, contacts, h=0.01, g=9.81, mu=0.5):
     Minv = sp.diags(np.concatenate(Minv))
     J = sp.lil_matrix((3 * len(contacts), 6 * nb))
     for k, (a, b, p, n) in enumerate(contacts):
-        F = _frame(n)
+        F = tangent_frames(np.asarray(n, float)[None])[0]   # the stage's own contact frame
         for body, sign in ((a, 1.0), (b, -1.0)):
             if body < 0:
                 continue
