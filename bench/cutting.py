@@ -16,6 +16,11 @@ the swept surface has crossed (tissue.cutting). Per step that changed the mesh:
     and of a naive split (no snapping, no bound) of the same cut on a copy of the mesh.
 Medians over the cut steps; kernels are compiled by a warm-up cut on a small box first.
 
+Also (issue #12's target): a topology edit of 10 elements on a live ~4,000-tetrahedron body,
+within its reserved capacity: remove 10 elements, add 2 nodes (centroids of two of them) and 16
+elements (8 back, the 2 split into 4 around the new nodes), with the solver's state and assembled
+blocks following; median ms over repetitions, state allocations and kernels compiled (none).
+
     python -m bench.cutting
 """
 
@@ -101,6 +106,51 @@ def warm_up() -> None:
             c.rows(np.arange(6))
 
 
+def edit_timing(repeats: int = 60) -> dict:
+    """Median ms of a 10-element edit (see the module docstring) on a live 3,960-tet box."""
+    from tissue import compilation
+    from tissue.fem import CorotationalFEM, Material
+    from tissue.mesh import box
+    from tissue.solver import ImplicitEuler
+
+    mesh = box(size=(0.11, 0.1, 0.06), cells=(11, 10, 6))
+    solver = ImplicitEuler(CorotationalFEM(mesh, Material(3e3, 0.3, 1000.0)), 0.02, gravity=(0.0, 0.0, 0.0))
+    model, rng = solver.model, np.random.default_rng(0)
+    model.reserve(nodes=2 * repeats + 8, elements=6 * repeats + 64, slots=2 * model.incidence_rows.shape[1])
+    solver.step()
+    seconds = {"remove": [], "add_nodes": [], "add_elements": [], "edit": [], "edit_cpu": []}
+    for i in range(repeats + 3):
+        if i == 3:       # after the warm-up edits (first use compiles; the blocks' pattern grows once)
+            start, allocations = compilation.count(), solver.allocations
+            growths = model.growths
+        ids = rng.choice(model.n_elements, 10, replace=False)
+        tets = model.tets[ids].astype(np.int64)
+        backend.sync()
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        model.remove_elements(ids)
+        t1 = time.perf_counter()
+        centres = model.add_nodes(model.points[tets[:2]].mean(axis=1))
+        t2 = time.perf_counter()
+        model.add_elements(np.concatenate([tets[2:], _split_into_four(tets[:2], centres)]))
+        backend.sync()
+        t3 = time.perf_counter()
+        c3 = time.process_time()
+        for k, elapsed in zip(seconds, (t1 - t0, t2 - t1, t3 - t2, t3 - t0, c3 - c0)):
+            seconds[k].append(1e3 * elapsed)
+        solver.step()
+    return dict(tets=mesh.n_tets, elements_removed=10, nodes_added=2, elements_added=16, repeats=repeats,
+                median_ms={k: float(np.median(v[3:])) for k, v in seconds.items()},
+                state_allocations=solver.allocations - allocations, model_growths=model.growths - growths,
+                kernels_compiled=compilation.count() - start)
+
+
+def _split_into_four(tets: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Each tet (a, b, c, d) as the 4 tets joining one of its faces to its centre."""
+    faces = np.array([[1, 3, 2], [0, 2, 3], [0, 3, 1], [0, 1, 2]])
+    return np.array([[t[f[0]], t[f[1]], t[f[2]], c] for t, c in zip(tets, centres) for f in faces])
+
+
 def run(target: int) -> dict:
     b = build(target)
     model, updates, contact, cutter = b["model"], b["updates"], b["contact"], b["cutter"]
@@ -171,6 +221,12 @@ def main() -> None:
     info = machine()
     print_machine(info)
     warm_up()
+    edit = edit_timing()
+    m = edit["median_ms"]
+    print(f"topology edit on {edit['tets']} tets (remove 10 elements, add 2 nodes and 16 elements), median ms: "
+          f"{m['edit']:.3f} (remove {m['remove']:.3f}, add nodes {m['add_nodes']:.3f}, add elements "
+          f"{m['add_elements']:.3f}; CPU time {m['edit_cpu']:.3f}); state allocations {edit['state_allocations']}, growths "
+          f"{edit['model_growths']}, kernels compiled {edit['kernels_compiled']}")
     results = []
     for target in SIZES:
         r = run(target)
@@ -188,7 +244,8 @@ def main() -> None:
         print(f"  worst created: dihedral {r['worst_created']['min_dihedral']:.1f} deg, condition "
               f"{r['worst_created']['max_condition']:.1f}; naive split: dihedral "
               f"{r['worst_naive']['min_dihedral']:.2f} deg, condition {r['worst_naive']['max_condition']:.1f}")
-    write_results("cutting", {"machine": info, "step_length_m": STEP_LENGTH, "results": results})
+    write_results("cutting", {"machine": info, "step_length_m": STEP_LENGTH, "topology_edit": edit,
+                              "results": results})
 
 
 if __name__ == "__main__":

@@ -129,8 +129,8 @@ class Cutter:
         backend.sync()
         report.seconds["model"] = time.perf_counter() - start
         start = time.perf_counter()
-        if self.solver is not None and report.nodes_added:
-            self.solver.set_state(np.concatenate([x] + new_x), np.concatenate([v] + new_v))
+        if self.solver is not None and report.nodes_added:   # only the new nodes' rows
+            self.solver.set_nodes(np.arange(len(x), model.n_nodes), np.concatenate(new_x), np.concatenate(new_v))
         backend.sync()
         report.seconds["state"] = time.perf_counter() - start
         start = time.perf_counter()

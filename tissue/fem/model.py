@@ -141,10 +141,11 @@ class BodyModel:
     def element_capacity(self) -> int:
         return len(self._tets)
 
-    def reserve(self, nodes: int = 0, elements: int = 0) -> None:
-        """Room for this many more nodes and elements now (e.g. before cutting), so that the
-        edits to come do not grow the arrays (and what is sized by them) midway."""
-        self._reserve(nodes=nodes, elements=elements)
+    def reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
+        """Room for this many more nodes and elements, and for `slots` elements at a node, now
+        (e.g. before cutting), so that the edits to come do not grow the arrays (and what is
+        sized by them) midway."""
+        self._reserve(nodes=nodes, elements=elements, slots=slots)
 
     def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
         """Room for this many more nodes and elements and slots per node, doubling what is short."""
@@ -258,8 +259,7 @@ class BodyModel:
         self.material = material
         self._elastic[:m, 1:] = material.lame
         self._density[:m] = material.density
-        self._mass[:] = 0.0
-        np.add.at(self._mass, self.tets.reshape(-1), np.repeat(material.density * self.volumes / 4.0, 4))
+        self._mass[:self.n_nodes] = self._node_mass(np.arange(self.n_nodes))
         self._upload("elastic", "mass")
 
     # ---- held nodes ---------------------------------------------------------------------------
@@ -371,8 +371,6 @@ class BodyModel:
         if len(ids) == 0:
             return np.zeros(0, dtype=np.int64)
         tets = self._tets[ids]
-        share = np.repeat(self._density[ids] * self._elastic[ids, 0] / 4.0, 4)
-        np.add.at(self._mass, tets.reshape(-1), sign * share)
         codes = (4 * ids[:, None] + np.arange(4)).reshape(-1).astype(np.int32)
         nodes = tets.reshape(-1)
         if sign > 0:   # each corner goes to its node's next free slot (ranked within the node)
@@ -391,11 +389,20 @@ class BodyModel:
             kept[np.take_along_axis(gone, order, axis=1)] = -1
             self._incidence[touched] = kept
             self._valence[touched] = (~gone).sum(axis=1)
-        self._mass[touched[self._valence[touched] == 0]] = 0.0    # no rounding residue
+        self._mass[touched] = self._node_mass(touched)
         held = self._held
         held[touched[(self._valence[touched] == 0)]] = DETACHED
         held[touched[(self._valence[touched] > 0) & (held[touched] == DETACHED)]] = 0
         return touched
+
+    def _node_mass(self, nodes: np.ndarray) -> np.ndarray:
+        """Σ ρ V / 4 over each node's elements, summed in ascending element order: to the bit
+        what a model built fresh on the same elements holds, however many edits came before (an
+        edit's ± would leave rounding residue behind)."""
+        codes = np.sort(self._incidence[nodes], axis=1)             # −1 (unused slots) first
+        elements = np.maximum(codes, 0) // 4
+        share = np.where(codes >= 0, self._density[elements] * self._elastic[elements, 0] / 4.0, 0.0)
+        return np.cumsum(share, axis=1)[:, -1] if share.shape[1] else np.zeros(len(nodes))
 
     def _flush(self, elements=(), nodes=()) -> None:
         """Write these elements' and nodes' rows, and the counts, to the device in one launch

@@ -179,8 +179,9 @@ class ImplicitEuler:
         self.stats = Stats()
         self._warned_inversion = False
         self._version = None
+        self._nodes = 0                # the model's nodes that the state holds
+        self.allocations = 0           # state allocations: 1, plus one per growth of the model
         self._pack_key = None
-        self._external = np.zeros((0, 3))
         self.multigrid = None
         self.parameters = parameters
         self._resize()
@@ -239,42 +240,47 @@ class ImplicitEuler:
     # ---- storage ------------------------------------------------------------------------------
 
     def _resize(self) -> None:
-        """Match the state to the model: its nodal arrays hold exactly the model's nodes (so the
-        contact layer and the output read them as they are), re-allocated with x and v kept when
-        nodes are added; no compilation either way."""
+        """Match the state to the model: nodal arrays sized by the model's node capacity (the
+        kernels read the active count), re-allocated only when the model's storage grew (x, v
+        and the external forces kept); nodes added since the last call join at rest, still."""
         model = self.model
-        key = (model.version, model.n_nodes)
-        if self._version == key:
-            return
+        if self._version != model.version:
+            self._allocate()
+        if self._nodes < model.n_nodes:
+            ids = np.arange(self._nodes, model.n_nodes)
+            self._nodes = model.n_nodes
+            self.set_nodes(ids, model.points[ids], np.zeros((len(ids), 3)))
+
+    def _allocate(self) -> None:
+        """Capacity-sized state; no compilation (the kernels take ndarrays of any size)."""
+        model = self.model
         self.fem.resize()
         if self.matrix is not None:
             self.matrix.resize()
         real = backend.current().real
         vec3, mat3 = ti.types.vector(3, real), ti.types.matrix(3, 3, real)
-        n = model.n_nodes
+        n = model.node_capacity
         old = getattr(self, "arrays", None)
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
         arrays["scalars"] = ti.ndarray(real, 11)
         arrays["partial"] = ti.ndarray(real, (2, (n + BLOCK - 1) // BLOCK))
         arrays["parameters"] = ti.ndarray(real, 9)
-        if old is None:
-            arrays["x"].from_numpy(model.points.astype(real_numpy()))
-        else:
-            for name in ("x", "v"):
-                values = np.zeros((n, 3), dtype=real_numpy())
-                previous = old[name].to_numpy()[:n]
+        for name in ("x", "v", "external"):
+            values = np.zeros((n, 3), dtype=real_numpy())
+            if old is not None:
+                previous = old[name].to_numpy()[:self._nodes]
                 values[:len(previous)] = previous
-                if name == "x":     # new nodes start at rest
-                    values[len(previous):] = model.points[len(previous):]
-                arrays[name].from_numpy(values)
-            external = np.zeros((n, 3), dtype=real_numpy())
-            external[:min(n, len(self._external))] = self._external[:n]
-            arrays["external"].from_numpy(external)
+            elif name == "x":
+                values[:model.n_nodes] = model.points
+            arrays[name].from_numpy(values)
+        if old is None:
+            self._nodes = model.n_nodes
         self.arrays = arrays
         self.x, self.v = arrays["x"], arrays["v"]
         self._upload_parameters()
-        self._version = key
+        self.allocations += 1
+        self._version = model.version
 
     def topology_changed(self, edit) -> None:
         self._resize()
@@ -307,8 +313,9 @@ class ImplicitEuler:
     def set_external_forces(self, forces=None) -> None:
         """Nodal forces (n, 3) in newtons applied from the next step on (tip loads, an
         instrument's push); None removes them. Forces at fixed nodes have no effect."""
+        self._resize()
         n = self.model.n_nodes
-        values = np.zeros((n, 3), dtype=real_numpy())
+        values = np.zeros((self.model.node_capacity, 3), dtype=real_numpy())
         if forces is not None:
             forces = np.asarray(forces, dtype=np.float64)
             if forces.shape != (n, 3):
@@ -317,23 +324,35 @@ class ImplicitEuler:
                 bad = np.flatnonzero(~np.isfinite(forces).all(axis=1))
                 raise TissueError(f"external forces: non-finite values at nodes {bad[:10].tolist()}")
             values[:n] = forces
-        self._resize()
-        self._external = values
         self.arrays["external"].from_numpy(values)
 
     def positions(self) -> np.ndarray:
         self._resize()
-        return self.x.to_numpy().astype(np.float64)
+        return self.x.to_numpy()[:self.model.n_nodes].astype(np.float64)
 
     def velocities(self) -> np.ndarray:
         self._resize()
-        return self.v.to_numpy().astype(np.float64)
+        return self.v.to_numpy()[:self.model.n_nodes].astype(np.float64)
 
     def set_state(self, positions=None, velocities=None) -> None:
         self._resize()
+        n = self.model.n_nodes
         for array, values in ((self.x, positions), (self.v, velocities)):
             if values is not None:
-                array.from_numpy(np.asarray(values, dtype=real_numpy()).reshape(self.model.n_nodes, 3))
+                padded = np.zeros((array.shape[0], 3), dtype=real_numpy())
+                padded[:n] = np.asarray(values, dtype=np.float64).reshape(n, 3)
+                array.from_numpy(padded)
+
+    def set_nodes(self, ids, positions, velocities) -> None:
+        """Positions and velocities (k, 3) of these nodes only (new nodes of a cut: an edit
+        writes the rows it touches, not the whole state)."""
+        ids = np.asarray(ids, dtype=np.int32).reshape(-1)
+        if len(ids) == 0:
+            return
+        self._resize()
+        rows = np.concatenate([np.asarray(positions, dtype=np.float64).reshape(-1, 3),
+                               np.asarray(velocities, dtype=np.float64).reshape(-1, 3)], axis=1)
+        _write_nodes(self.x, self.v, ids, rows.astype(real_numpy()))
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 
@@ -390,6 +409,16 @@ class ImplicitEuler:
         for _ in range(steps):
             self.step()
         return self.positions()
+
+
+@ti.kernel
+def _write_nodes(x: ti.types.ndarray(), v: ti.types.ndarray(), ids: ti.types.ndarray(), rows: ti.types.ndarray()):
+    """x[ids[r]], v[ids[r]] = rows[r, :3], rows[r, 3:]"""
+    ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
+    for r in range(ids.shape[0]):
+        for c in ti.static(range(3)):
+            x[ids[r]][c] = rows[r, c]
+            v[ids[r]][c] = rows[r, 3 + c]
 
 
 def _unused(members) -> dict:
