@@ -335,7 +335,7 @@ class BodyModel:
         self._density[ids] = material.density
         self.n_elements += len(tets)
         self._toggle_faces(tets, added=True)
-        self._flush(elements=ids, nodes=self._link(ids, +1))
+        self._flush(elements=ids, nodes=self._link(ids))
         self._notify(Edit(added=ids))
         return ids
 
@@ -347,53 +347,53 @@ class BodyModel:
         if len(ids) and (ids[0] < 0 or ids[-1] >= m):
             raise TissueError(f"remove_elements: ids out of range [0, {m}): {ids[(ids < 0) | (ids >= m)][:10].tolist()}")
         self._toggle_faces(self._tets[ids], added=False)
-        touched = [self._link(ids, -1)]
         keep = np.ones(m, dtype=bool)
         keep[ids] = False
         kept_tail = np.flatnonzero(keep[m - len(ids):]) + m - len(ids)   # survivors that must move
         holes = ids[ids < m - len(ids)]                                   # freed slots they fill
         where = np.where(keep, np.arange(m), -1)
-        if len(holes):
-            touched.append(self._link(kept_tail, -1))
-            for name in ("_tets", "_Dm_inv", "_rest_frame", "_elastic", "_density"):
-                array = getattr(self, name)
-                array[holes] = array[kept_tail]
-            where[kept_tail] = holes
+        where[kept_tail] = holes
+        # The gather entries of the removed elements' nodes and the moved ones' nodes: removed
+        # codes dropped, moved ones renamed, survivors in order.
+        touched = np.unique(self._tets[np.concatenate([ids, kept_tail])])
+        rows = self._incidence[touched]
+        element = np.where(rows >= 0, where[rows // 4], -1)
+        gone = element < 0
+        order = np.argsort(gone, axis=1, kind="stable")
+        self._incidence[touched] = np.take_along_axis(np.where(gone, -1, 4 * element + rows % 4), order, axis=1)
+        self._valence[touched] = (~gone).sum(axis=1)
+        for name in ("_tets", "_Dm_inv", "_rest_frame", "_elastic", "_density"):
+            array = getattr(self, name)
+            array[holes] = array[kept_tail]
         self.n_elements = m - len(ids)
-        if len(holes):
-            touched.append(self._link(holes, +1))
-        self._flush(elements=holes, nodes=np.concatenate(touched))
+        self._relink(touched)
+        self._flush(elements=holes, nodes=touched)
         self._notify(Edit(moved_from=kept_tail, moved_to=holes))
         return where
 
-    def _link(self, ids: np.ndarray, sign: int) -> np.ndarray:
-        """Add (+1) or take away (−1) elements' mass and gather entries; returns the nodes touched."""
+    def _link(self, ids: np.ndarray) -> np.ndarray:
+        """Add elements' gather entries (each corner in its node's next free slot); returns the
+        nodes touched."""
         if len(ids) == 0:
             return np.zeros(0, dtype=np.int64)
-        tets = self._tets[ids]
         codes = (4 * ids[:, None] + np.arange(4)).reshape(-1).astype(np.int32)
-        nodes = tets.reshape(-1)
-        if sign > 0:   # each corner goes to its node's next free slot (ranked within the node)
-            order = np.argsort(nodes, kind="stable")
-            sorted_nodes = nodes[order]
-            first = np.searchsorted(sorted_nodes, sorted_nodes)
-            slot = self._valence[sorted_nodes] + np.arange(len(order)) - first
-            self._incidence[sorted_nodes, slot] = codes[order]
-            np.add.at(self._valence, nodes, 1)
-        touched = np.unique(nodes)
-        if sign < 0:   # the touched nodes' rows without the removed codes, survivors in order
-            rows = self._incidence[touched]
-            gone = np.isin(rows, codes) | (rows < 0)
-            order = np.argsort(gone, axis=1, kind="stable")
-            kept = np.take_along_axis(rows, order, axis=1)
-            kept[np.take_along_axis(gone, order, axis=1)] = -1
-            self._incidence[touched] = kept
-            self._valence[touched] = (~gone).sum(axis=1)
+        nodes = self._tets[ids].reshape(-1)
+        order = np.argsort(nodes, kind="stable")
+        sorted_nodes = nodes[order]
+        first = np.searchsorted(sorted_nodes, sorted_nodes)
+        self._incidence[sorted_nodes, self._valence[sorted_nodes] + np.arange(len(order)) - first] = codes[order]
+        touched, count = np.unique(sorted_nodes, return_counts=True)
+        self._valence[touched] += count
+        self._relink(touched)
+        return touched
+
+    def _relink(self, touched: np.ndarray) -> None:
+        """The mass of nodes whose elements changed; those left without any detached, those
+        given one again free."""
         self._mass[touched] = self._node_mass(touched)
         held = self._held
         held[touched[(self._valence[touched] == 0)]] = DETACHED
         held[touched[(self._valence[touched] > 0) & (held[touched] == DETACHED)]] = 0
-        return touched
 
     def _node_mass(self, nodes: np.ndarray) -> np.ndarray:
         """Σ ρ V / 4 over each node's elements, summed in ascending element order: to the bit

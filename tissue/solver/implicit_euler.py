@@ -180,6 +180,7 @@ class ImplicitEuler:
         self._warned_inversion = False
         self._version = None
         self._nodes = 0                # the model's nodes that the state holds
+        self._node_staging = None      # set_nodes' host rows
         self.allocations = 0           # state allocations: 1, plus one per growth of the model
         self._pack_key = None
         self.multigrid = None
@@ -346,13 +347,20 @@ class ImplicitEuler:
     def set_nodes(self, ids, positions, velocities) -> None:
         """Positions and velocities (k, 3) of these nodes only (new nodes of a cut: an edit
         writes the rows it touches, not the whole state)."""
-        ids = np.asarray(ids, dtype=np.int32).reshape(-1)
+        ids = np.asarray(ids).reshape(-1)
         if len(ids) == 0:
             return
         self._resize()
-        rows = np.concatenate([np.asarray(positions, dtype=np.float64).reshape(-1, 3),
-                               np.asarray(velocities, dtype=np.float64).reshape(-1, 3)], axis=1)
-        _write_nodes(self.x, self.v, ids, rows.astype(real_numpy()))
+        staging = self._node_staging          # host buffers reused, so the launch is replayed
+        if staging is None or len(staging[0]) < len(ids):
+            size = max(len(ids), 16, 2 * len(staging[0]) if staging is not None else 0)
+            staging = self._node_staging = (np.empty(size, np.int32), np.empty((size, 6), real_numpy()))
+        index, rows = staging
+        index[len(ids):] = -1
+        index[:len(ids)] = ids
+        rows[:len(ids), :3] = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        rows[:len(ids), 3:] = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
+        WRITE_NODES(self.x, self.v, index, rows)
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 
@@ -413,12 +421,16 @@ class ImplicitEuler:
 
 @ti.kernel
 def _write_nodes(x: ti.types.ndarray(), v: ti.types.ndarray(), ids: ti.types.ndarray(), rows: ti.types.ndarray()):
-    """x[ids[r]], v[ids[r]] = rows[r, :3], rows[r, 3:]"""
+    """x[ids[r]], v[ids[r]] = rows[r, :3], rows[r, 3:], rows whose id is −1 being padding."""
     ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
     for r in range(ids.shape[0]):
-        for c in ti.static(range(3)):
-            x[ids[r]][c] = rows[r, c]
-            v[ids[r]][c] = rows[r, 3 + c]
+        if ids[r] >= 0:
+            for c in ti.static(range(3)):
+                x[ids[r]][c] = rows[r, c]
+                v[ids[r]][c] = rows[r, 3 + c]
+
+
+WRITE_NODES = replayed(_write_nodes)
 
 
 def _unused(members) -> dict:
