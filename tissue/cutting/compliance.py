@@ -33,6 +33,7 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from ..fem.model import BodyModel
+from ..launch import host_view
 
 RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely folds midway
 RANK_TOLERANCE = 1e-13   # eigenvalues of a correction below this fraction of its largest: rounding
@@ -96,6 +97,48 @@ def _fold(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), r
             C[j, i] = value
 
 
+# ---- the same three operations with numpy's BLAS on the ndarrays' own memory (CPU) -----------------
+
+
+def _host_gather(C, T, U, rank, free, cols, n, out) -> None:
+    """out[:k] = rows cols of C − T Uᵀ (C symmetric, so also its columns: C[j, c] − Σ T[j] U[c]),
+    zero where a dof is not free: as _gather."""
+    k = len(cols)
+    out[:k, :n] = C[cols, :n]
+    if rank:
+        out[:k, :n] -= U[cols, :rank] @ T[:n, :rank].T
+    out[:k, :n] *= free[:n]
+    out[:k][~free[cols]] = 0.0
+
+
+def _host_factor(rows, k, L, X, units, T, U, r0, n) -> None:
+    """U[:, r0 : r0 + w] = (C G) L (C G: the k gathered rows, transposed; L = I when None), less 1
+    at (units[b], b) where units[b] ≥ 0; then T = U X: as _factor."""
+    w = len(X)
+    Uw = rows[:k, :n].T @ L if L is not None else rows[:k, :n].T.copy()
+    at = np.flatnonzero(units >= 0)
+    Uw[units[at], at] -= 1.0
+    U[:n, r0:r0 + w] = Uw
+    T[:n, r0:r0 + w] = Uw @ X
+
+
+FOLD_TILE = 512      # rows of C folded per product: the temporary stays small, BLAS stays efficient
+
+
+def _host_fold(C, T, U, rank, free, n) -> None:
+    """C ← C − T Uᵀ on its upper triangle, tile by tile, mirrored to the lower one (C stays exactly
+    symmetric), then zero outside the free dofs: as _fold."""
+    for i0 in range(0, n, FOLD_TILE):
+        i1 = min(i0 + FOLD_TILE, n)
+        C[i0:i1, i0:n] -= T[i0:i1, :rank] @ U[i0:n, :rank].T
+        diagonal = C[i0:i1, i0:i1]
+        diagonal[...] = np.triu(diagonal) + np.triu(diagonal, 1).T
+        C[i1:n, i0:i1] = C[i0:i1, i1:n].T
+    fixed = np.flatnonzero(~free[:n])
+    C[fixed, :n] = 0.0
+    C[:n, fixed] = 0.0
+
+
 def element_blocks(model: BodyModel, ids: np.ndarray, mass_weight: float, stiffness_weight: float) -> np.ndarray:
     """(k, 12, 12) blocks mass_weight Mₑ + stiffness_weight Kₑ of these elements, from the model's
     own rest data: Kₑ[a, b] = V (λ g_a g_bᵀ + μ g_b g_aᵀ + μ (g_a · g_b) I), g the shape-function
@@ -149,10 +192,15 @@ class CuttingCompliance:
     see the module docstring. `fold_rank` 0 is eager; above, lazy."""
 
     def __init__(self, model: BodyModel, dt: float, rayleigh_mass: float = 0.0,
-                 rayleigh_stiffness: float = 0.0, fold_rank: int = 0):
-        if backend.current().precision != "f64":
+                 rayleigh_stiffness: float = 0.0, fold_rank: int = 0, blas: bool | None = None):
+        be = backend.current()
+        if be.precision != "f64":
             raise TissueError("cutting compliance: needs float64 (single precision is unstable for "
                               "these inversions)")
+        if blas and be.arch != "cpu":
+            raise TissueError(f"cutting compliance: blas=True works on the CPU's memory; on {be.arch} the "
+                              "kernels do the algebra (blas=None)")
+        self.blas = be.arch == "cpu" if blas is None else bool(blas)
         self.model = model
         self.mass_weight = 1.0 + dt * rayleigh_mass
         self.stiffness_weight = dt * rayleigh_stiffness + dt * dt
@@ -183,12 +231,14 @@ class CuttingCompliance:
         self.free = ti.ndarray(ti.i32, dofs)
         self.free.from_numpy(self._free.astype(np.int32))
         self._factors(rank)
-        self._rows = ti.ndarray(ti.f64, (1, dofs))
+        self._rows = ti.ndarray(ti.f64, (1, dofs)) if not self.blas else np.zeros((1, dofs))
         self._block = ti.ndarray(ti.f64, (1, 1))
+        self._C = host_view(self.C) if self.blas else None
 
     def _factors(self, rank: int) -> None:
         self.T = ti.ndarray(ti.f64, (self.capacity, rank))
         self.U = ti.ndarray(ti.f64, (self.capacity, rank))
+        self._T, self._U = (host_view(self.T), host_view(self.U)) if self.blas else (None, None)
 
     def _grow(self, dofs: int) -> None:
         """Room for the model's grown node capacity: the folded C, padded with zeros."""
@@ -291,14 +341,18 @@ class CuttingCompliance:
         `block` (its own small array: rows() may gather thousands of rows)."""
         k = len(dofs)
         if self._rows.shape[0] < k:
-            self._rows = ti.ndarray(ti.f64, (max(k, 2 * self._rows.shape[0]), self.capacity))
+            shape = (max(k, 2 * self._rows.shape[0]), self.capacity)
+            self._rows = np.zeros(shape) if self.blas else ti.ndarray(ti.f64, shape)
+        self._gathered = k
+        if self.blas:
+            _host_gather(self._C, self._T, self._U, self.rank, self._free, dofs, self.n_dofs, self._rows)
+            return self._rows[:k, dofs].copy() if block else None
         if block and self._block.shape[0] < k:
             self._block = ti.ndarray(ti.f64, (max(k, 2 * self._block.shape[0]),) * 2)
         cols = np.zeros(max(k, 1), dtype=np.int32)     # never empty: Taichi takes no empty array
         cols[:k] = dofs
         _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, self._rows, self._block,
                 k if block else 0)
-        self._gathered = k
         return self._block.to_numpy()[:k, :k] if block else None
 
     def _add_factor(self, X: np.ndarray, L: np.ndarray | None = None, units: np.ndarray | None = None) -> None:
@@ -309,6 +363,10 @@ class CuttingCompliance:
             if w > self.T.shape[1]:
                 self._factors(w + self.fold_rank + RANK_ROOM)
         units = np.full(w, -1, dtype=np.int32) if units is None else units.astype(np.int32)
+        if self.blas:
+            _host_factor(self._rows, k, L, X, units, self._T, self._U, self.rank, self.n_dofs)
+            self.rank += w
+            return
         left = np.zeros((max(k, 1), w))
         if L is not None:
             left[:k] = L
@@ -319,7 +377,11 @@ class CuttingCompliance:
     def fold(self) -> None:
         """C ← C − T Uᵀ (zero outside the free dofs); the factors are emptied."""
         if self.rank:
-            _fold(self.C, self.T, self.U, self.rank, self.free, min(self.n_dofs, self.capacity))   # (before a growth)
+            n = min(self.n_dofs, self.capacity)       # (before a growth)
+            if self.blas:
+                _host_fold(self._C, self._T, self._U, self.rank, self._free, n)
+            else:
+                _fold(self.C, self.T, self.U, self.rank, self.free, n)
             self.rank = 0
             self.folds += 1
 
@@ -330,6 +392,8 @@ class CuttingCompliance:
         self.update()
         dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
         self._columns(dofs, block=False)
+        if self.blas:
+            return self._rows[:len(dofs), :self.n_dofs].copy()
         return self._rows.to_numpy()[:len(dofs), :self.n_dofs]
 
     def dense(self) -> np.ndarray:
