@@ -132,14 +132,14 @@ def replayed(kernel) -> Replayed:
 
 def host_view(array: Ndarray) -> np.ndarray:
     """A numpy array over a CPU ndarray's own memory (no copy): what numpy writes there, kernels
-    read, and the other way round. Scalar ndarrays only; CPU only (elsewhere the memory is the
-    device's). The view is valid while `array` lives: keep both."""
+    read, and the other way round; a vector or matrix ndarray's element is its last axes. CPU
+    only (elsewhere the memory is the device's). The view is valid while `array` lives: keep both."""
     if backend.current().arch != "cpu":
         raise RuntimeError("host_view: an ndarray's memory is the host's on the CPU backend only")
     import ctypes
 
     dtype = np.dtype(to_numpy_type(array.dtype))
-    size = int(np.prod(array.shape))
+    shape = tuple(array.arr.total_shape())
     address = impl.get_runtime().prog.get_ndarray_data_ptr_as_int(array.arr)
-    buffer = (ctypes.c_char * (size * dtype.itemsize)).from_address(address)
-    return np.frombuffer(buffer, dtype=dtype).reshape(array.shape)
+    buffer = (ctypes.c_char * (int(np.prod(shape)) * dtype.itemsize)).from_address(address)
+    return np.frombuffer(buffer, dtype=dtype).reshape(shape)

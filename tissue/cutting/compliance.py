@@ -126,17 +126,27 @@ FOLD_TILE = 512      # rows of C folded per product: the temporary stays small, 
 
 
 def _host_fold(C, T, U, rank, free, n) -> None:
-    """C ← C − T Uᵀ on its upper triangle, tile by tile, mirrored to the lower one (C stays exactly
-    symmetric), then zero outside the free dofs: as _fold."""
+    """C ← C − T Uᵀ on its upper triangle, a strip of rows at a time, mirrored to the lower one (C
+    stays exactly symmetric), then zero outside the free dofs: as _fold."""
     for i0 in range(0, n, FOLD_TILE):
         i1 = min(i0 + FOLD_TILE, n)
         C[i0:i1, i0:n] -= T[i0:i1, :rank] @ U[i0:n, :rank].T
-        diagonal = C[i0:i1, i0:i1]
-        diagonal[...] = np.triu(diagonal) + np.triu(diagonal, 1).T
+        _mirror_upper(C[i0:i1, i0:i1])
         C[i1:n, i0:i1] = C[i0:i1, i1:n].T
     fixed = np.flatnonzero(~free[:n])
     C[fixed, :n] = 0.0
     C[:n, fixed] = 0.0
+
+
+def _mirror_upper(square: np.ndarray, tile: int = 64) -> None:
+    """A square block's upper triangle copied onto its lower one, in strips of `tile` rows (a
+    transposed copy stays in cache)."""
+    b = len(square)
+    for s0 in range(0, b, tile):
+        s1 = min(s0 + tile, b)
+        diagonal = square[s0:s1, s0:s1]
+        diagonal[...] = np.triu(diagonal) + np.triu(diagonal, 1).T
+        square[s1:b, s0:s1] = square[s0:s1, s1:b].T
 
 
 def element_blocks(model: BodyModel, ids: np.ndarray, mass_weight: float, stiffness_weight: float) -> np.ndarray:

@@ -144,13 +144,15 @@ class BodyModel:
     def reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
         """Room for this many more nodes and elements, and for `slots` elements at a node, now
         (e.g. before cutting), so that the edits to come do not grow the arrays (and what is
-        sized by them) midway."""
-        self._reserve(nodes=nodes, elements=elements, slots=slots)
+        sized by them) midway. Exactly that room: what is sized by the square of the nodes (a
+        cutting compliance) would pay for more."""
+        self._reserve(nodes=nodes, elements=elements, slots=slots, factor=1)
 
-    def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
-        """Room for this many more nodes and elements and slots per node, doubling what is short."""
+    def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0, factor: int = 2) -> None:
+        """Room for this many more nodes and elements and slots per node; what is short grows to
+        `factor` times what there is (doubling: rare growth under edits), or to the need."""
         def grown(need, have):
-            return have if need <= have else max(need, 2 * have)
+            return have if need <= have else max(need, factor * have)
 
         have = (self.node_capacity, self.element_capacity, self._incidence.shape[1])
         want = (grown(self.n_nodes + nodes, have[0]), grown(self.n_elements + elements, have[1]), grown(slots, have[2]))
