@@ -33,7 +33,7 @@ from ..fem import CorotationalFEM, assembled, corotational
 from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL, real_numpy
-from ..launch import replayed
+from ..launch import host_view, replayed
 from ..stats import Stats
 from . import multigrid
 from .multigrid import MULTIGRID_MEMBERS, Multigrid
@@ -328,12 +328,21 @@ class ImplicitEuler:
         self.arrays["external"].from_numpy(values)
 
     def positions(self) -> np.ndarray:
-        self._resize()
-        return self.x.to_numpy()[:self.model.n_nodes].astype(np.float64)
+        return self._read(self.x)
 
     def velocities(self) -> np.ndarray:
+        return self._read(self.v)
+
+    def _read(self, array) -> np.ndarray:
+        """A float64 copy of a nodal array's rows in use: on the CPU from the array's own memory
+        (Taichi's to_numpy launches a parallel copy kernel, milliseconds when the cores are
+        busy), elsewhere through the device."""
         self._resize()
-        return self.v.to_numpy()[:self.model.n_nodes].astype(np.float64)
+        n = self.model.n_nodes
+        if backend.current().arch == "cpu":
+            backend.sync()
+            return host_view(array)[:n].astype(np.float64)
+        return array.to_numpy()[:n].astype(np.float64)
 
     def set_state(self, positions=None, velocities=None) -> None:
         self._resize()
