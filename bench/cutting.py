@@ -24,15 +24,22 @@ blocks following; median ms over repetitions, state allocations and kernels comp
     python -m bench.cutting
 """
 
+import os
 import time
 
-import numpy as np
+# One BLAS thread unless told otherwise (set before numpy loads OpenBLAS): the compliance's
+# products are small, and on this shared 2-core machine a second OpenBLAS thread spins against
+# the other processes: at load average ~8, lazy's median went from 17.6 ms (one thread) to
+# 104 ms (two), eager's from 93 to 404 (commit 8fb48c5, same session).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 import scipy.linalg
 
-from bench.common import machine, print_machine, write_results
-from scenes.liver_cut import LiverCut
-from tissue import backend
-from tissue.scene import held_nodes
+from bench.common import machine, print_machine, write_results  # noqa: E402
+from scenes.liver_cut import LiverCut  # noqa: E402
+from tissue import backend  # noqa: E402
+from tissue.scene import held_nodes  # noqa: E402
 
 FOLD_RANK = 240
 STEP_LENGTH = 0.002          # m of blade travel per step
@@ -233,6 +240,7 @@ def main() -> None:
     backend.init(precision="f64")
     info = machine()
     print_machine(info)
+    print(f"# BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}; load average at start {os.getloadavg()[0]:.1f}")
     warm_up()
     edit = edit_timing()
     m = edit["median_ms"]
@@ -263,7 +271,8 @@ def main() -> None:
         print(f"  worst created: dihedral {r['worst_created']['min_dihedral']:.1f} deg, condition "
               f"{r['worst_created']['max_condition']:.1f}; naive split: dihedral "
               f"{r['worst_naive']['min_dihedral']:.2f} deg, condition {r['worst_naive']['max_condition']:.1f}")
-    write_results("cutting", {"machine": info, "step_length_m": STEP_LENGTH, "topology_edit": edit,
+    write_results("cutting", {"machine": info, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
+                              "load_average": os.getloadavg(), "step_length_m": STEP_LENGTH, "topology_edit": edit,
                               "results": results})
 
 
