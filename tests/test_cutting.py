@@ -73,6 +73,25 @@ def test_swept_surface_crossings_and_distances():
     np.testing.assert_allclose(sweep([[0, 0, 0], [0, 0, -1]], [[1, 0, 0], [1, 0, -1]])[:, :, 1], 0.0)
 
 
+def test_distances_against_sampled_triangles():
+    """Point-to-surface distances against the nearest of many points sampled on the triangles:
+    never above it, and below it by at most the samples' spacing."""
+    rng = np.random.default_rng(2)
+    triangles = rng.uniform(-1, 1, (6, 3, 3))
+    surface = CutSurface()
+    surface.add(triangles)
+    u, v = np.meshgrid(np.linspace(0, 1, 121), np.linspace(0, 1, 121))
+    u, v = u[u + v <= 1], v[u + v <= 1]
+    samples = (triangles[:, None, 0] + u[None, :, None] * (triangles[:, None, 1] - triangles[:, None, 0])
+               + v[None, :, None] * (triangles[:, None, 2] - triangles[:, None, 0])).reshape(-1, 3)
+    spacing = 2.0 * np.sqrt(2) / 120 * np.abs(triangles).max()
+    points = rng.uniform(-1.5, 1.5, (40, 3))
+    distance, _, _ = surface.distances(points)
+    sampled = np.linalg.norm(points[:, None] - samples[None], axis=2).min(axis=1)
+    assert np.all(distance <= sampled + 1e-12)
+    assert np.all(distance >= sampled - spacing)
+
+
 def test_vectorised_queries_match_numpy():
     """The planner's shortcuts against the plain numpy they replace: row-wise unique (rows, inverse,
     counts) and the elements whose bounding box meets a box."""

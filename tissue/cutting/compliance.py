@@ -271,7 +271,10 @@ class CuttingCompliance:
 
     def _set_free(self, free: np.ndarray) -> None:
         self._free = free
-        self.free.from_numpy(free.astype(np.int32))
+        if self.blas:        # the mask's ndarray is the kernels' (from_numpy: a parallel launch)
+            host_view(self.free)[:] = free
+        else:
+            self.free.from_numpy(free.astype(np.int32))
 
     def _matrix(self, elements: np.ndarray, dofs: np.ndarray) -> np.ndarray:
         """The current A among these dofs, from these elements' blocks."""

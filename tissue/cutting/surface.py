@@ -72,6 +72,8 @@ class CutSurface:
     def __init__(self):
         self.triangles = np.zeros((0, 3, 3))
         self.normals = np.zeros((0, 3))
+        self._edges = np.zeros((0, 3, 3))           # per triangle, edge i: corner i+1 − corner i
+        self._inward = np.zeros((0, 3, 3))          # normal × edge: points inside have (p − a)·it ≥ 0
 
     def add(self, triangles) -> None:
         """Add swept triangles; degenerate ones (the blade did not move) are dropped."""
@@ -79,8 +81,12 @@ class CutSurface:
         n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
         area = np.linalg.norm(n, axis=1)
         keep = area > 1e-12 * max(float(np.ptp(t.reshape(-1, 3), axis=0).max(initial=0.0)) ** 2, 1e-300)
-        self.triangles = np.concatenate([self.triangles, t[keep]])
-        self.normals = np.concatenate([self.normals, n[keep] / area[keep, None]])
+        t, n = t[keep], n[keep] / area[keep, None]
+        edges = t[:, [1, 2, 0]] - t
+        self.triangles = np.concatenate([self.triangles, t])
+        self.normals = np.concatenate([self.normals, n])
+        self._edges = np.concatenate([self._edges, edges])
+        self._inward = np.concatenate([self._inward, np.cross(n[:, None, :], edges)])
 
     def __len__(self) -> int:
         return len(self.triangles)
@@ -125,20 +131,18 @@ class CutSurface:
         ids = np.arange(len(self)) if triangles is None else np.asarray(triangles)
         if len(ids) == 0:
             return np.full(len(points), np.inf), np.ones(len(points)), np.full(len(points), -1)
-        T, n = self.triangles[ids], self.normals[ids]
+        T, n, edges, inward = self.triangles[ids], self.normals[ids], self._edges[ids], self._inward[ids]
         p = points[:, None, :]                                    # (k, 1, 3)
-        plane = np.einsum("kmi,mi->km", p - T[None, :, 0], n)
-        foot = p - plane[..., None] * n[None]
+        plane = ((p - T[None, :, 0]) * n).sum(axis=2)             # (k, m)
         inside = np.ones(plane.shape, bool)
-        for i in range(3):                                        # the foot is left of every edge
-            a, b = T[:, i], T[:, (i + 1) % 3]
-            inside &= np.einsum("kmi,mi->km", np.cross(b - a, foot - a[None]), n) >= 0
-        distance = np.where(inside, np.abs(plane), np.inf)
-        for i in range(3):                                        # else the nearest edge point
-            a, b = T[:, i], T[:, (i + 1) % 3]
-            ab = b - a
-            f = np.clip(np.einsum("kmi,mi->km", p - a[None], ab) / np.einsum("mi,mi->m", ab, ab), 0.0, 1.0)
-            distance = np.minimum(distance, np.linalg.norm(p - (a[None] + f[..., None] * ab[None]), axis=2))
+        distance = np.full(plane.shape, np.inf)
+        for i in range(3):                  # the foot on the plane left of every edge, else the
+            a, ab = T[None, :, i], edges[None, :, i]              # nearest point of an edge
+            pa = p - a
+            inside &= (pa * inward[None, :, i]).sum(axis=2) >= 0  # (the foot's offset is along n)
+            f = np.clip((pa * ab).sum(axis=2) / (ab * ab).sum(axis=2), 0.0, 1.0)
+            distance = np.minimum(distance, np.sqrt(((pa - f[..., None] * ab) ** 2).sum(axis=2)))
+        distance = np.minimum(distance, np.where(inside, np.abs(plane), np.inf))
         nearest = np.argmin(distance, axis=1)
         rows = np.arange(len(points))
         return distance[rows, nearest], np.where(plane[rows, nearest] >= 0, 1.0, -1.0), ids[nearest]
