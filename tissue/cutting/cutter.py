@@ -161,9 +161,12 @@ class Cutter:
         p = x[faces[new]]
         normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-        distance, _, nearest = self.surface.distances(p.mean(axis=1))
+        reach = max(self.snap, 0.05) * self.spacing
+        centres = p.mean(axis=1)        # (a triangle within reach has its box within reach of theirs)
+        distance, _, nearest = self.surface.distances(centres, self.surface.near(centres.min(axis=0) - reach,
+                                                                                 centres.max(axis=0) + reach))
         aligned = np.abs(np.einsum("ki,ki->k", normal, self.surface.normals[nearest])) >= 0.5
-        close = distance <= max(self.snap, 0.05) * self.spacing
+        close = distance <= reach
         self.cut_keys.update(map(tuple, keys[new][aligned & close].tolist()))
 
     # ---- planning -----------------------------------------------------------------------------

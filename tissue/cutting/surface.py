@@ -105,18 +105,18 @@ class CutSurface:
         t_out, tri_out = np.full(k, np.nan), np.full(k, -1)
         if k == 0 or len(ids) == 0:
             return t_out, tri_out
-        T = self.triangles[ids]
-        p0, e1, e2 = T[:, 0], T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
-        d = (b - a)[:, None, :]                                   # (k, 1, 3)
-        h = np.cross(d, e2[None])                                 # (k, m, 3)
-        det = np.einsum("kmi,mi->km", h, e1)
+        T = self.triangles[ids].transpose(1, 2, 0)[:, :, None, :]          # (corner, 3, 1, m)
+        p0, e1, e2 = T[0], T[1] - T[0], T[2] - T[0]
+        d = (b - a).T[:, :, None]                                          # (3, k, 1)
+        h = _cross(d, e2)                                                  # (3, k, m)
+        det = _dot(h, e1)
         ok = np.abs(det) > 1e-300
         inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        s = a[:, None, :] - p0[None]
-        u = np.einsum("kmi,kmi->km", s, h) * inv
-        q = np.cross(s, e1[None])
-        v = np.einsum("kmi,kmi->km", d, q) * inv
-        t = np.einsum("mi,kmi->km", e2, q) * inv
+        s = a.T[:, :, None] - p0
+        u = _dot(s, h) * inv
+        q = _cross(s, e1)
+        v = _dot(d, q) * inv
+        t = _dot(e2, q) * inv
         hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < 1)
         t = np.where(hit, t, np.inf)
         first = np.argmin(t, axis=1)
@@ -131,18 +131,30 @@ class CutSurface:
         ids = np.arange(len(self)) if triangles is None else np.asarray(triangles)
         if len(ids) == 0:
             return np.full(len(points), np.inf), np.ones(len(points)), np.full(len(points), -1)
-        T, n, edges, inward = self.triangles[ids], self.normals[ids], self._edges[ids], self._inward[ids]
-        p = points[:, None, :]                                    # (k, 1, 3)
-        plane = ((p - T[None, :, 0]) * n).sum(axis=2)             # (k, m)
+        # Coordinates first, (3, points, triangles): sums over a last axis of 3 cost ~20x more.
+        corners = self.triangles[ids].transpose(1, 2, 0)[:, :, None, :]     # (corner, 3, 1, m)
+        edges = self._edges[ids].transpose(1, 2, 0)[:, :, None, :]
+        inward = self._inward[ids].transpose(1, 2, 0)[:, :, None, :]
+        p = points.T[:, :, None]                                           # (3, k, 1)
+        plane = _dot(p - corners[0], self.normals[ids].T[:, None, :])      # (k, m)
         inside = np.ones(plane.shape, bool)
         distance = np.full(plane.shape, np.inf)
         for i in range(3):                  # the foot on the plane left of every edge, else the
-            a, ab = T[None, :, i], edges[None, :, i]              # nearest point of an edge
-            pa = p - a
-            inside &= (pa * inward[None, :, i]).sum(axis=2) >= 0  # (the foot's offset is along n)
-            f = np.clip((pa * ab).sum(axis=2) / (ab * ab).sum(axis=2), 0.0, 1.0)
-            distance = np.minimum(distance, np.sqrt(((pa - f[..., None] * ab) ** 2).sum(axis=2)))
+            pa, ab = p - corners[i], edges[i]                  # nearest point of an edge
+            inside &= _dot(pa, inward[i]) >= 0                 # (the foot's offset is along n)
+            off = pa - np.clip(_dot(pa, ab) / _dot(ab, ab), 0.0, 1.0) * ab
+            distance = np.minimum(distance, np.sqrt(_dot(off, off)))
         distance = np.minimum(distance, np.where(inside, np.abs(plane), np.inf))
         nearest = np.argmin(distance, axis=1)
         rows = np.arange(len(points))
         return distance[rows, nearest], np.where(plane[rows, nearest] >= 0, 1.0, -1.0), ids[nearest]
+
+
+def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Σ over the first axis (3 coordinates) of u v."""
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u × v over the first axis (3 coordinates), broadcasting the others."""
+    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
