@@ -83,6 +83,7 @@ class BodyModel:
         self.growths = 0
         self._real = real_numpy()
         self._faces = None
+        self._face_array = None     # the boundary faces as an array (read-only), rebuilt after edits
         self._staging = None        # the edit rows' host buffers, reused (see _flush)
         self._counts = np.zeros(2, dtype=np.int32)
         self._subscribers: list[weakref.ref] = []
@@ -237,7 +238,10 @@ class BodyModel:
             from ..mesh import boundary_faces
 
             self._faces = {tuple(sorted(f)): tuple(f) for f in boundary_faces(self.tets).tolist()}
-        return np.array(list(self._faces.values()), dtype=np.int64).reshape(-1, 3)
+        if self._face_array is None:        # kept until an edit toggles a face
+            self._face_array = np.array(list(self._faces.values()), dtype=np.int64).reshape(-1, 3)
+            self._face_array.flags.writeable = False
+        return self._face_array
 
     def _toggle_faces(self, tets: np.ndarray, added: bool) -> None:
         """A face belongs to the boundary when one element has it. An added element's face that
@@ -245,6 +249,7 @@ class BodyModel:
         boundary is gone, else its neighbour's side (the reversed face) is now surface."""
         if self._faces is None:
             return
+        self._face_array = None
         for face in tets[:, OUTWARD_FACES].reshape(-1, 3).tolist():
             key = tuple(sorted(face))
             if key in self._faces:
