@@ -16,6 +16,8 @@ the swept surface has crossed (tissue.cutting). Per step that changed the mesh:
     and of a naive split (no snapping, no bound) of the same cut on a copy of the mesh.
 Medians over the cut steps; kernels are compiled by a warm-up cut on a small box first.
 
+Then the lazy update's cost against its fold threshold FOLD_RANK (0 to 480, at the larger mesh).
+
 Also (issue #12's target): a topology edit of 10 elements on a live ~4,000-tetrahedron body,
 within its reserved capacity: remove 10 elements, add 2 nodes (centroids of two of them) and 16
 elements (8 back, the 2 split into 4 around the new nodes), with the solver's state and assembled
@@ -226,6 +228,34 @@ def run(target: int) -> dict:
             "worst_naive": naive, "per_step": rows}
 
 
+def fold_rank_sweep(target: int = SIZES[-1], ranks=(0, 60, 120, 240, 480)) -> dict:
+    """The lazy update's cost against its fold threshold: the same cut steps, one compliance per
+    threshold (0: eager), each updated after every step; median and mean ms (wall and CPU) over
+    the steps that changed the mesh, and the folds."""
+    from tissue.cutting import CuttingCompliance
+
+    b = build(target)
+    model, s = b["model"], b["scene"].solver
+    del b["updates"]                               # (their memory: C is (3 nodes)² floats each)
+    updates = {r: CuttingCompliance(model, b["scene"].dt, s.rayleigh_mass, s.rayleigh_stiffness, fold_rank=r)
+               for r in ranks}
+    wall, cpu = {r: [] for r in ranks}, {r: [] for r in ranks}
+    for i in range(int(np.ceil(b["path"].length / STEP_LENGTH))):
+        report = b["cutter"].cut(b["path"].sweep(i * STEP_LENGTH, (i + 1) * STEP_LENGTH))
+        if report.nodes_added == 0 and report.split == 0:
+            continue
+        for r, update in updates.items():
+            c, t = time.process_time(), time.perf_counter()
+            update.update()
+            backend.sync()
+            wall[r].append(1e3 * (time.perf_counter() - t))
+            cpu[r].append(1e3 * (time.process_time() - c))
+    return {"tets": b["mesh"].n_tets, "rows": [
+        dict(fold_rank=r, folds=updates[r].folds, wall_median_ms=float(np.median(wall[r])),
+             wall_mean_ms=float(np.mean(wall[r])), cpu_median_ms=float(np.median(cpu[r])),
+             cpu_mean_ms=float(np.mean(cpu[r])), cpu_max_ms=float(np.max(cpu[r]))) for r in ranks]}
+
+
 def _pieces(model) -> np.ndarray:
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
@@ -271,7 +301,13 @@ def main() -> None:
         print(f"  worst created: dihedral {r['worst_created']['min_dihedral']:.1f} deg, condition "
               f"{r['worst_created']['max_condition']:.1f}; naive split: dihedral "
               f"{r['worst_naive']['min_dihedral']:.2f} deg, condition {r['worst_naive']['max_condition']:.1f}")
-    write_results("cutting", {"machine": info, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
+    sweep = fold_rank_sweep()
+    print(f"\nlazy update against its fold threshold ({sweep['tets']} tets; 0: eager), ms:")
+    for row in sweep["rows"]:
+        print(f"  fold_rank {row['fold_rank']:4d}: CPU median {row['cpu_median_ms']:6.2f}, mean "
+              f"{row['cpu_mean_ms']:6.2f}, max {row['cpu_max_ms']:6.1f}; wall median {row['wall_median_ms']:6.2f}, "
+              f"mean {row['wall_mean_ms']:6.2f}; {row['folds']} folds")
+    write_results("cutting", {"machine": info, "fold_rank_sweep": sweep, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
                               "load_average": os.getloadavg(), "step_length_m": STEP_LENGTH, "topology_edit": edit,
                               "results": results})
 
