@@ -15,6 +15,9 @@ replays too.
 
 The context belongs to Taichi's internals (`taichi.lang.kernel_impl`, pinned to 1.7 by setup.cfg),
 so replays are used on the CPU only, where the tests exercise them; other archs launch normally.
+
+`host_view(ndarray)` is, on the CPU, a numpy array over an ndarray's own memory: reads without
+Taichi's copy kernel (a parallel launch: milliseconds on busy cores), and BLAS on kernels' arrays.
 """
 
 from __future__ import annotations

@@ -23,6 +23,13 @@ Eager (fold_rank 0) folds the factors into C after every update, n² work per un
 paper's cost). Lazy keeps them: `rows(dofs)` returns the rows of C − T Uᵀ without forming it (W
 needs only the rows of the constrained nodes), and the factors are folded into C once their rank
 passes `fold_rank`. Float64 only: single precision is unstable for these inversions (paper §4.3).
+
+The three operations (gather, factor, fold) are Taichi kernels over the ndarrays; on the CPU they
+run instead as numpy's BLAS on the same ndarrays' memory (tissue.launch.host_view), `blas=False`
+forcing the kernels (the tests check both): at 3,874 tetrahedra a fold at rank 255 took 368 ms
+in the kernel against 82 ms in one BLAS thread, a lazy update 15–25 ms against 4–15 ms (CPU time).
+The fold updates C's upper triangle a strip of rows at a time and mirrors it, so C stays exactly
+symmetric as the kernel keeps it.
 """
 
 import numpy as np
@@ -199,7 +206,8 @@ def cancel_moved(tets: np.ndarray, blocks: np.ndarray) -> np.ndarray:
 
 class CuttingCompliance:
     """C = A⁻¹ of a BodyModel's rest step matrix, on the device, following its topology edits;
-    see the module docstring. `fold_rank` 0 is eager; above, lazy."""
+    see the module docstring. `fold_rank` 0 is eager; above, lazy. `blas`: the algebra in numpy's
+    BLAS on the ndarrays' memory (None: on the CPU) or in the kernels (False)."""
 
     def __init__(self, model: BodyModel, dt: float, rayleigh_mass: float = 0.0,
                  rayleigh_stiffness: float = 0.0, fold_rank: int = 0, blas: bool | None = None):

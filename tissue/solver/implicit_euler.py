@@ -137,9 +137,10 @@ class StepParameters:
 
 
 class ImplicitEuler:
-    """Time integration of one soft body: its model (through `fem`), its state (`x`, `v`:
-    ndarrays of the model's nodes; `positions()`/`velocities()` for numpy) and the parameters of a
-    step (`parameters`, changed with `set_parameters`)."""
+    """Time integration of one soft body: its model (through `fem`), its state (`x`, `v`: ndarrays
+    sized by the model's node capacity, the first `model.n_nodes` rows in use; `positions()` /
+    `velocities()` for numpy) and the parameters of a step (`parameters`, changed with
+    `set_parameters`)."""
 
     def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
