@@ -16,18 +16,32 @@ the swept surface has crossed (tissue.cutting). Per step that changed the mesh:
     and of a naive split (no snapping, no bound) of the same cut on a copy of the mesh.
 Medians over the cut steps; kernels are compiled by a warm-up cut on a small box first.
 
+Then the lazy update's cost against its fold threshold FOLD_RANK (0 to 480, at the larger mesh).
+
+Also (issue #12's target): a topology edit of 10 elements on a live ~4,000-tetrahedron body,
+within its reserved capacity: remove 10 elements, add 2 nodes (centroids of two of them) and 16
+elements (8 back, the 2 split into 4 around the new nodes), with the solver's state and assembled
+blocks following; median ms over repetitions, state allocations and kernels compiled (none).
+
     python -m bench.cutting
 """
 
+import os
 import time
 
-import numpy as np
+# One BLAS thread unless told otherwise (set before numpy loads OpenBLAS): the compliance's
+# products are small, and on this shared 2-core machine a second OpenBLAS thread spins against
+# the other processes: at load average ~8, lazy's median went from 17.6 ms (one thread) to
+# 104 ms (two), eager's from 93 to 404 (commit 8fb48c5, same session).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 import scipy.linalg
 
-from bench.common import machine, print_machine, write_results
-from scenes.liver_cut import LiverCut
-from tissue import backend
-from tissue.scene import held_nodes
+from bench.common import machine, print_machine, write_results  # noqa: E402
+from scenes.liver_cut import LiverCut  # noqa: E402
+from tissue import backend  # noqa: E402
+from tissue.scene import held_nodes  # noqa: E402
 
 FOLD_RANK = 240
 STEP_LENGTH = 0.002          # m of blade travel per step
@@ -55,7 +69,8 @@ def build(target: int):
     held = held_nodes(mesh.points, spec.fixed)
     solver = ImplicitEuler(fem, dt=scene.dt, rayleigh_mass=s.rayleigh_mass, rayleigh_stiffness=s.rayleigh_stiffness,
                            cg=CGSettings(max_iterations=s.cg_iterations, preconditioner=s.preconditioner), fixed=held)
-    fem.model.reserve(nodes=fem.model.n_nodes // 4, elements=fem.model.n_elements // 4)   # as the scene does
+    fem.model.reserve(nodes=fem.model.n_nodes // 4, elements=fem.model.n_elements // 4,   # as the scene does
+                      slots=fem.model.incidence_rows.shape[1] + 8)
     args = (fem.model, scene.dt, s.rayleigh_mass, s.rayleigh_stiffness)
     updates = {"eager": CuttingCompliance(*args), "lazy": CuttingCompliance(*args, fold_rank=FOLD_RANK)}
     contact = ContactStage([solver], [RigidObstacle(Plane((0.0, 0.0, -0.1)))], Contact(distance=2e-3))
@@ -101,6 +116,51 @@ def warm_up() -> None:
             c.rows(np.arange(6))
 
 
+def edit_timing(repeats: int = 60) -> dict:
+    """Median ms of a 10-element edit (see the module docstring) on a live 3,960-tet box."""
+    from tissue import compilation
+    from tissue.fem import CorotationalFEM, Material
+    from tissue.mesh import box
+    from tissue.solver import ImplicitEuler
+
+    mesh = box(size=(0.11, 0.1, 0.06), cells=(11, 10, 6))
+    solver = ImplicitEuler(CorotationalFEM(mesh, Material(3e3, 0.3, 1000.0)), 0.02, gravity=(0.0, 0.0, 0.0))
+    model, rng = solver.model, np.random.default_rng(0)
+    model.reserve(nodes=2 * repeats + 8, elements=6 * repeats + 64, slots=2 * model.incidence_rows.shape[1])
+    solver.step()
+    seconds = {"remove": [], "add_nodes": [], "add_elements": [], "edit": [], "edit_cpu": []}
+    for i in range(repeats + 3):
+        if i == 3:       # after the warm-up edits (first use compiles; the blocks' pattern grows once)
+            start, allocations = compilation.count(), solver.allocations
+            growths = model.growths
+        ids = rng.choice(model.n_elements, 10, replace=False)
+        tets = model.tets[ids].astype(np.int64)
+        backend.sync()
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        model.remove_elements(ids)
+        t1 = time.perf_counter()
+        centres = model.add_nodes(model.points[tets[:2]].mean(axis=1))
+        t2 = time.perf_counter()
+        model.add_elements(np.concatenate([tets[2:], _split_into_four(tets[:2], centres)]))
+        backend.sync()
+        t3 = time.perf_counter()
+        c3 = time.process_time()
+        for k, elapsed in zip(seconds, (t1 - t0, t2 - t1, t3 - t2, t3 - t0, c3 - c0)):
+            seconds[k].append(1e3 * elapsed)
+        solver.step()
+    return dict(tets=mesh.n_tets, elements_removed=10, nodes_added=2, elements_added=16, repeats=repeats,
+                median_ms={k: float(np.median(v[3:])) for k, v in seconds.items()},
+                state_allocations=solver.allocations - allocations, model_growths=model.growths - growths,
+                kernels_compiled=compilation.count() - start)
+
+
+def _split_into_four(tets: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Each tet (a, b, c, d) as the 4 tets joining one of its faces to its centre."""
+    faces = np.array([[1, 3, 2], [0, 2, 3], [0, 3, 1], [0, 1, 2]])
+    return np.array([[t[f[0]], t[f[1]], t[f[2]], c] for t, c in zip(tets, centres) for f in faces])
+
+
 def run(target: int) -> dict:
     b = build(target)
     model, updates, contact, cutter = b["model"], b["updates"], b["contact"], b["cutter"]
@@ -111,19 +171,23 @@ def run(target: int) -> dict:
     for i in range(steps):
         patch = b["path"].sweep(i * STEP_LENGTH, (i + 1) * STEP_LENGTH)
         backend.sync()
+        cpu = time.process_time()
         report = cutter.cut(patch)
         backend.sync()
         row = {k: 1e3 * v for k, v in report.seconds.items()}
+        row["cut_cpu"] = 1e3 * (time.process_time() - cpu)
         for mode, update in updates.items():
-            start = time.perf_counter()
+            cpu, start = time.process_time(), time.perf_counter()
             update.update()
             backend.sync()
             row[f"compliance_{mode}"] = 1e3 * (time.perf_counter() - start)
-        start = time.perf_counter()
+            row[f"compliance_{mode}_cpu"] = 1e3 * (time.process_time() - cpu)
+        cpu, start = time.process_time(), time.perf_counter()
         if contact._edited:
             contact._follow_edits()
         backend.sync()
         row["contact_rows"] = 1e3 * (time.perf_counter() - start)
+        row["contact_rows_cpu"] = 1e3 * (time.process_time() - cpu)
         naive_report = b["naive"].cut(patch)
         naive["min_dihedral"] = min(naive["min_dihedral"], naive_report.min_dihedral)
         naive["max_condition"] = max(naive["max_condition"], naive_report.max_condition)
@@ -142,18 +206,54 @@ def run(target: int) -> dict:
     medians = {k: float(np.median([r[k] for r in rows])) for k in stages + ("compliance_eager", "compliance_lazy")}
     whole = {mode: float(np.median([sum(r[k] for k in stages) + r[f"compliance_{mode}"] for r in rows]))
              for mode in updates}
+    # CPU time of this process (all its threads): what the other processes' load on the shared
+    # cores does not inflate, unlike the wall time (a busy BLAS thread still counts).
+    cpu = {f"compliance_{mode}": float(np.median([r[f"compliance_{mode}_cpu"] for r in rows])) for mode in updates}
+    cpu.update({f"whole_step_{mode}": float(np.median([r["cut_cpu"] + r["contact_rows_cpu"] + r[f"compliance_{mode}_cpu"]
+                                                       for r in rows])) for mode in updates})
+    means = {f"compliance_{mode}": float(np.mean([r[f"compliance_{mode}"] for r in rows])) for mode in updates}
+    means.update({f"compliance_{mode}_cpu": float(np.mean([r[f"compliance_{mode}_cpu"] for r in rows]))
+                  for mode in updates})
     created = [r for r in rows if r["created"]]
     pieces = len(np.unique(_pieces(model)))
     return {"tets": b["mesh"].n_tets, "nodes": b["mesh"].n_points, "held": len(b["held"]), "steps": steps,
             "cut_steps": len(rows), "step_length_m": STEP_LENGTH, "fold_rank": FOLD_RANK,
             "tets_after": model.n_elements, "nodes_after": model.n_nodes, "pieces_after": pieces,
-            "median_ms": medians, "whole_step_median_ms": whole,
+            "median_ms": medians, "whole_step_median_ms": whole, "cpu_median_ms": cpu, "mean_ms": means,
             "nodes_added_median": float(np.median([r["nodes_added"] for r in rows])),
             "nodes_added_max": int(max(r["nodes_added"] for r in rows)),
             "error_first_last": errors, "lazy_folds": updates["lazy"].folds,
             "worst_created": {"min_dihedral": min(r["min_dihedral"] for r in created),
                               "max_condition": max(r["max_condition"] for r in created)},
             "worst_naive": naive, "per_step": rows}
+
+
+def fold_rank_sweep(target: int = SIZES[-1], ranks=(0, 60, 120, 240, 480)) -> dict:
+    """The lazy update's cost against its fold threshold: the same cut steps, one compliance per
+    threshold (0: eager), each updated after every step; median and mean ms (wall and CPU) over
+    the steps that changed the mesh, and the folds."""
+    from tissue.cutting import CuttingCompliance
+
+    b = build(target)
+    model, s = b["model"], b["scene"].solver
+    del b["updates"]                               # (their memory: C is (3 nodes)² floats each)
+    updates = {r: CuttingCompliance(model, b["scene"].dt, s.rayleigh_mass, s.rayleigh_stiffness, fold_rank=r)
+               for r in ranks}
+    wall, cpu = {r: [] for r in ranks}, {r: [] for r in ranks}
+    for i in range(int(np.ceil(b["path"].length / STEP_LENGTH))):
+        report = b["cutter"].cut(b["path"].sweep(i * STEP_LENGTH, (i + 1) * STEP_LENGTH))
+        if report.nodes_added == 0 and report.split == 0:
+            continue
+        for r, update in updates.items():
+            c, t = time.process_time(), time.perf_counter()
+            update.update()
+            backend.sync()
+            wall[r].append(1e3 * (time.perf_counter() - t))
+            cpu[r].append(1e3 * (time.process_time() - c))
+    return {"tets": b["mesh"].n_tets, "rows": [
+        dict(fold_rank=r, folds=updates[r].folds, wall_median_ms=float(np.median(wall[r])),
+             wall_mean_ms=float(np.mean(wall[r])), cpu_median_ms=float(np.median(cpu[r])),
+             cpu_mean_ms=float(np.mean(cpu[r])), cpu_max_ms=float(np.max(cpu[r]))) for r in ranks]}
 
 
 def _pieces(model) -> np.ndarray:
@@ -170,7 +270,14 @@ def main() -> None:
     backend.init(precision="f64")
     info = machine()
     print_machine(info)
+    print(f"# BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}; load average at start {os.getloadavg()[0]:.1f}")
     warm_up()
+    edit = edit_timing()
+    m = edit["median_ms"]
+    print(f"topology edit on {edit['tets']} tets (remove 10 elements, add 2 nodes and 16 elements), median ms: "
+          f"{m['edit']:.3f} (remove {m['remove']:.3f}, add nodes {m['add_nodes']:.3f}, add elements "
+          f"{m['add_elements']:.3f}; CPU time {m['edit_cpu']:.3f}); state allocations {edit['state_allocations']}, growths "
+          f"{edit['model_growths']}, kernels compiled {edit['kernels_compiled']}")
     results = []
     for target in SIZES:
         r = run(target)
@@ -183,12 +290,26 @@ def main() -> None:
               f"contact rows {m['contact_rows']:.2f}, compliance eager {m['compliance_eager']:.2f} / lazy "
               f"{m['compliance_lazy']:.2f}")
         print(f"  whole cut step (median ms): eager {w['eager']:.2f}, lazy {w['lazy']:.2f}")
+        c, mean = r["cpu_median_ms"], r["mean_ms"]
+        print(f"  CPU time (median ms): compliance eager {c['compliance_eager']:.2f} / lazy {c['compliance_lazy']:.2f}; "
+              f"whole step eager {c['whole_step_eager']:.2f} / lazy {c['whole_step_lazy']:.2f}")
+        print(f"  compliance mean ms (folds included): eager {mean['compliance_eager']:.2f} / lazy "
+              f"{mean['compliance_lazy']:.2f}; CPU {mean['compliance_eager_cpu']:.2f} / {mean['compliance_lazy_cpu']:.2f}; "
+              f"lazy folds {r['lazy_folds']}")
         print("  error vs direct inverse (first, last cut step): " + "; ".join(
             f"{mode} " + ", ".join(f"{e:.1e}" for e in errs) for mode, errs in r["error_first_last"].items()))
         print(f"  worst created: dihedral {r['worst_created']['min_dihedral']:.1f} deg, condition "
               f"{r['worst_created']['max_condition']:.1f}; naive split: dihedral "
               f"{r['worst_naive']['min_dihedral']:.2f} deg, condition {r['worst_naive']['max_condition']:.1f}")
-    write_results("cutting", {"machine": info, "step_length_m": STEP_LENGTH, "results": results})
+    sweep = fold_rank_sweep()
+    print(f"\nlazy update against its fold threshold ({sweep['tets']} tets; 0: eager), ms:")
+    for row in sweep["rows"]:
+        print(f"  fold_rank {row['fold_rank']:4d}: CPU median {row['cpu_median_ms']:6.2f}, mean "
+              f"{row['cpu_mean_ms']:6.2f}, max {row['cpu_max_ms']:6.1f}; wall median {row['wall_median_ms']:6.2f}, "
+              f"mean {row['wall_mean_ms']:6.2f}; {row['folds']} folds")
+    write_results("cutting", {"machine": info, "fold_rank_sweep": sweep, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
+                              "load_average": os.getloadavg(), "step_length_m": STEP_LENGTH, "topology_edit": edit,
+                              "results": results})
 
 
 if __name__ == "__main__":

@@ -73,6 +73,46 @@ def test_swept_surface_crossings_and_distances():
     np.testing.assert_allclose(sweep([[0, 0, 0], [0, 0, -1]], [[1, 0, 0], [1, 0, -1]])[:, :, 1], 0.0)
 
 
+def test_distances_against_sampled_triangles():
+    """Point-to-surface distances against the nearest of many points sampled on the triangles:
+    never above it, and below it by at most the samples' spacing."""
+    rng = np.random.default_rng(2)
+    triangles = rng.uniform(-1, 1, (6, 3, 3))
+    surface = CutSurface()
+    surface.add(triangles)
+    u, v = np.meshgrid(np.linspace(0, 1, 121), np.linspace(0, 1, 121))
+    u, v = u[u + v <= 1], v[u + v <= 1]
+    samples = (triangles[:, None, 0] + u[None, :, None] * (triangles[:, None, 1] - triangles[:, None, 0])
+               + v[None, :, None] * (triangles[:, None, 2] - triangles[:, None, 0])).reshape(-1, 3)
+    spacing = 2.0 * np.sqrt(2) / 120 * np.abs(triangles).max()
+    points = rng.uniform(-1.5, 1.5, (40, 3))
+    distance, _, _ = surface.distances(points)
+    sampled = np.linalg.norm(points[:, None] - samples[None], axis=2).min(axis=1)
+    assert np.all(distance <= sampled + 1e-12)
+    assert np.all(distance >= sampled - spacing)
+
+
+def test_vectorised_queries_match_numpy():
+    """The planner's shortcuts against the plain numpy they replace: row-wise unique (rows, inverse,
+    counts) and the elements whose bounding box meets a box."""
+    from tissue.cutting.cutter import _boxes_meeting, _unique_rows
+
+    rng = np.random.default_rng(0)
+    rows = np.sort(rng.integers(0, 30, size=(400, 3)), axis=1)
+    got = _unique_rows(rows, 30, return_inverse=True, return_counts=True)
+    want = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w.reshape(g.shape))
+    assert _unique_rows(np.zeros((0, 2), np.int64), 5).shape == (0, 2)
+    x = rng.uniform(-1, 1, size=(200, 3))
+    tets = rng.integers(0, 200, size=(500, 4))
+    lo, hi = np.array([-0.2, -0.5, 0.0]), np.array([0.3, 0.1, 0.4])
+    corners = x[tets]
+    want = np.flatnonzero((corners.min(axis=1) <= hi).all(axis=1) & (corners.max(axis=1) >= lo).all(axis=1))
+    np.testing.assert_array_equal(_boxes_meeting(x, tets, lo, hi), want)
+    assert 0 < len(want) < len(tets)
+
+
 @pytest.mark.parametrize("states", [(1, -1, -1, -1), (1, 1, -1, -1), (1, -1, 0, 0), (1, 1, -1, 0), (-1, 1, 0, 1)])
 def test_split_pieces_fill_the_element(states):
     """Every sign pattern: the pieces are positive, fill the element's volume exactly, lie on their

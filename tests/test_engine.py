@@ -196,6 +196,70 @@ def test_model_edits_keep_its_invariants(backend):
     assert got == want
 
 
+def test_edit_writes_in_place_and_equals_a_fresh_model(backend):
+    """An edit within the reserved capacity (remove 10 elements, add 2 nodes, add 16 elements:
+    8 back and 2 split into 4 around the new nodes) on a live solver re-allocates nothing (the
+    model's, the solver's and its blocks' arrays are the same objects) and compiles nothing; the
+    model then equals one built fresh on the edited mesh exactly: mass, element data, gather
+    index, boundary and held nodes, in the numpy mirrors and on the device. The solver's nodes
+    keep their state; the new ones start at rest, still."""
+    mesh = box(size=(0.4, 0.3, 0.3), cells=(4, 3, 3))
+    fixed = clamped(mesh)
+    solver = ImplicitEuler(CorotationalFEM(mesh, MATERIAL), 0.01, fixed=fixed)
+    model = solver.model
+    model.reserve(nodes=10, elements=40)
+    model.boundary_faces()                                     # from here on, kept by the edits
+    rng = np.random.default_rng(3)
+
+    def edit():
+        ids = rng.choice(model.n_elements, 10, replace=False)
+        tets = model.tets[ids].astype(np.int64)
+        model.remove_elements(ids)
+        centres = model.add_nodes(model.points[tets[:2]].mean(axis=1))
+        model.add_elements(np.concatenate([tets[2:], split_into_four(tets[:2], centres)]))
+
+    for _ in range(2):      # the edit kernels compile on first use; the blocks' pattern grows once
+        edit()
+    solver.step()
+    x_before, v_before = solver.positions(), solver.velocities()
+    stored = [solver.x, solver.v, solver.fem.work, solver.matrix.pack, model.pack, *model.arrays.values()]
+    versions, start = (model.version, model.growths, solver.allocations), compilation.count()
+    edit()
+    assert compilation.count() == start, "an edit compiled kernels"
+    assert (model.version, model.growths, solver.allocations) == versions, "an edit re-allocated"
+    same = [solver.x, solver.v, solver.fem.work, solver.matrix.pack, model.pack, *model.arrays.values()]
+    assert all(a is b for a, b in zip(stored, same)), "an edit replaced a storage object"
+    n_old = len(x_before)
+    np.testing.assert_array_equal(solver.positions()[:n_old], x_before)
+    np.testing.assert_array_equal(solver.velocities()[:n_old], v_before)
+    np.testing.assert_array_equal(solver.positions()[n_old:], model.points[n_old:])
+    np.testing.assert_array_equal(solver.velocities()[n_old:], 0.0)
+
+    fresh = BodyModel(TetMesh(model.points.copy(), model.tets.astype(np.int64)), MATERIAL)
+    fresh.set_held(fixed)
+    n, m = model.n_nodes, model.n_elements
+    assert (fresh.n_nodes, fresh.n_elements) == (n, m)
+    for name in ("tets", "Dm_inv", "elastic", "density", "mass", "held", "points"):
+        np.testing.assert_array_equal(getattr(model, name), getattr(fresh, name), err_msg=name)
+    np.testing.assert_array_equal(model._rest_frame[:m], fresh._rest_frame[:m])
+    np.testing.assert_array_equal(model._valence[:n], fresh._valence[:n])
+    gather = []                           # each node's corner codes, in ascending order
+    for body in (model, fresh):
+        offsets, corners = body.incidence_csr()
+        gather.append((offsets, corners[np.lexsort((corners, np.repeat(np.arange(n), np.diff(offsets))))]))
+    np.testing.assert_array_equal(gather[0][0], gather[1][0])
+    np.testing.assert_array_equal(gather[0][1], gather[1][1])
+    for live_model in (model, fresh):     # the device holds what the numpy mirrors hold
+        device = {k: a.to_numpy() for k, a in live_model.arrays.items()}
+        assert device["counts"].tolist() == [n, m]
+        for name, rows in (("tets", m), ("Dm_inv", m), ("rest_frame", m), ("elastic", m), ("mass", n),
+                           ("held", n), ("valence", n), ("rest", n)):
+            np.testing.assert_array_equal(device[name][:rows], getattr(live_model, "_" + name)[:rows], err_msg=name)
+        np.testing.assert_array_equal(device["incidence"][:n], live_model.incidence_rows[:n])
+    canonical = lambda faces: {tuple(np.roll(f, -np.argmin(f))) for f in faces.tolist()}   # noqa: E731
+    assert canonical(model.boundary_faces()) == canonical(fresh.boundary_faces())
+
+
 def test_edits_refuse_bad_elements(backend):
     mesh = box(size=(0.3, 0.3, 0.3), cells=(1, 1, 1))
     model = BodyModel(mesh, MATERIAL)

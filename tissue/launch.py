@@ -15,6 +15,9 @@ replays too.
 
 The context belongs to Taichi's internals (`taichi.lang.kernel_impl`, pinned to 1.7 by setup.cfg),
 so replays are used on the CPU only, where the tests exercise them; other archs launch normally.
+
+`host_view(ndarray)` is, on the CPU, a numpy array over an ndarray's own memory: reads without
+Taichi's copy kernel (a parallel launch: milliseconds on busy cores), and BLAS on kernels' arrays.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from taichi.lang import impl, runtime_ops
 from taichi.lang._ndarray import Ndarray
 from taichi.lang.argpack import ArgPack, ArgPackType
 from taichi.lang.matrix import MatrixType
+from taichi.lang.util import to_numpy_type
 from taichi.types import primitive_types
 from taichi.types import template
 
@@ -127,3 +131,18 @@ def replayed(kernel) -> Replayed:
     """`kernel`, launched by replaying its recorded context when the arguments repeat."""
     return Replayed(kernel)
 
+
+
+def host_view(array: Ndarray) -> np.ndarray:
+    """A numpy array over a CPU ndarray's own memory (no copy): what numpy writes there, kernels
+    read, and the other way round; a vector or matrix ndarray's element is its last axes. CPU
+    only (elsewhere the memory is the device's). The view is valid while `array` lives: keep both."""
+    if backend.current().arch != "cpu":
+        raise RuntimeError("host_view: an ndarray's memory is the host's on the CPU backend only")
+    import ctypes
+
+    dtype = np.dtype(to_numpy_type(array.dtype))
+    shape = tuple(array.arr.total_shape())
+    address = impl.get_runtime().prog.get_ndarray_data_ptr_as_int(array.arr)
+    buffer = (ctypes.c_char * (int(np.prod(shape)) * dtype.itemsize)).from_address(address)
+    return np.frombuffer(buffer, dtype=dtype).reshape(shape)

@@ -70,7 +70,8 @@ class _BodyCut:
                             spec.depth)
         solver = body.solver
         # Room for the cut's new nodes and elements before the compliance sizes C by the capacity.
-        solver.model.reserve(nodes=solver.model.n_nodes // 4, elements=solver.model.n_elements // 4)
+        solver.model.reserve(nodes=solver.model.n_nodes // 4, elements=solver.model.n_elements // 4,
+                             slots=solver.model.incidence_rows.shape[1] + 8)
         self.compliance = CuttingCompliance(solver.model, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness,
                                             fold_rank=spec.fold_rank) if spec.compliance else None
         self.cutter = Cutter(solver.model, solver, self.compliance)

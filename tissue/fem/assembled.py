@@ -253,7 +253,7 @@ class SymmetricBlocks(_Blocks):
             if self._pairs is None:
                 self._pairs = {(int(r), int(c)): j for j, (r, c) in enumerate(self._upper)}
             new = []
-            for row, t in zip(edit.added, self.model.tets[edit.added]):
+            for row, t in zip(edit.added.tolist(), self.model.tets[edit.added].tolist()):   # Python ints: faster
                 for k, (a, b) in enumerate(PAIRS):
                     key = (min(t[a], t[b]), max(t[a], t[b]))
                     j = self._pairs.get(key)

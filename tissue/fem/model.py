@@ -83,6 +83,7 @@ class BodyModel:
         self.growths = 0
         self._real = real_numpy()
         self._faces = None
+        self._face_array = None     # the boundary faces as an array (read-only), rebuilt after edits
         self._staging = None        # the edit rows' host buffers, reused (see _flush)
         self._counts = np.zeros(2, dtype=np.int32)
         self._subscribers: list[weakref.ref] = []
@@ -141,15 +142,18 @@ class BodyModel:
     def element_capacity(self) -> int:
         return len(self._tets)
 
-    def reserve(self, nodes: int = 0, elements: int = 0) -> None:
-        """Room for this many more nodes and elements now (e.g. before cutting), so that the
-        edits to come do not grow the arrays (and what is sized by them) midway."""
-        self._reserve(nodes=nodes, elements=elements)
+    def reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
+        """Room for this many more nodes and elements, and for `slots` elements at a node, now
+        (e.g. before cutting), so that the edits to come do not grow the arrays (and what is
+        sized by them) midway. Exactly that room: what is sized by the square of the nodes (a
+        cutting compliance) would pay for more."""
+        self._reserve(nodes=nodes, elements=elements, slots=slots, factor=1)
 
-    def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0) -> None:
-        """Room for this many more nodes and elements and slots per node, doubling what is short."""
+    def _reserve(self, nodes: int = 0, elements: int = 0, slots: int = 0, factor: int = 2) -> None:
+        """Room for this many more nodes and elements and slots per node; what is short grows to
+        `factor` times what there is (doubling: rare growth under edits), or to the need."""
         def grown(need, have):
-            return have if need <= have else max(need, 2 * have)
+            return have if need <= have else max(need, factor * have)
 
         have = (self.node_capacity, self.element_capacity, self._incidence.shape[1])
         want = (grown(self.n_nodes + nodes, have[0]), grown(self.n_elements + elements, have[1]), grown(slots, have[2]))
@@ -234,7 +238,10 @@ class BodyModel:
             from ..mesh import boundary_faces
 
             self._faces = {tuple(sorted(f)): tuple(f) for f in boundary_faces(self.tets).tolist()}
-        return np.array(list(self._faces.values()), dtype=np.int64).reshape(-1, 3)
+        if self._face_array is None:        # kept until an edit toggles a face
+            self._face_array = np.array(list(self._faces.values()), dtype=np.int64).reshape(-1, 3)
+            self._face_array.flags.writeable = False
+        return self._face_array
 
     def _toggle_faces(self, tets: np.ndarray, added: bool) -> None:
         """A face belongs to the boundary when one element has it. An added element's face that
@@ -242,6 +249,7 @@ class BodyModel:
         boundary is gone, else its neighbour's side (the reversed face) is now surface."""
         if self._faces is None:
             return
+        self._face_array = None
         for face in tets[:, OUTWARD_FACES].reshape(-1, 3).tolist():
             key = tuple(sorted(face))
             if key in self._faces:
@@ -258,8 +266,7 @@ class BodyModel:
         self.material = material
         self._elastic[:m, 1:] = material.lame
         self._density[:m] = material.density
-        self._mass[:] = 0.0
-        np.add.at(self._mass, self.tets.reshape(-1), np.repeat(material.density * self.volumes / 4.0, 4))
+        self._mass[:self.n_nodes] = self._node_mass(np.arange(self.n_nodes))
         self._upload("elastic", "mass")
 
     # ---- held nodes ---------------------------------------------------------------------------
@@ -335,7 +342,7 @@ class BodyModel:
         self._density[ids] = material.density
         self.n_elements += len(tets)
         self._toggle_faces(tets, added=True)
-        self._flush(elements=ids, nodes=self._link(ids, +1))
+        self._flush(elements=ids, nodes=self._link(ids))
         self._notify(Edit(added=ids))
         return ids
 
@@ -347,55 +354,62 @@ class BodyModel:
         if len(ids) and (ids[0] < 0 or ids[-1] >= m):
             raise TissueError(f"remove_elements: ids out of range [0, {m}): {ids[(ids < 0) | (ids >= m)][:10].tolist()}")
         self._toggle_faces(self._tets[ids], added=False)
-        touched = [self._link(ids, -1)]
         keep = np.ones(m, dtype=bool)
         keep[ids] = False
         kept_tail = np.flatnonzero(keep[m - len(ids):]) + m - len(ids)   # survivors that must move
         holes = ids[ids < m - len(ids)]                                   # freed slots they fill
         where = np.where(keep, np.arange(m), -1)
-        if len(holes):
-            touched.append(self._link(kept_tail, -1))
-            for name in ("_tets", "_Dm_inv", "_rest_frame", "_elastic", "_density"):
-                array = getattr(self, name)
-                array[holes] = array[kept_tail]
-            where[kept_tail] = holes
+        where[kept_tail] = holes
+        # The gather entries of the removed elements' nodes and the moved ones' nodes: removed
+        # codes dropped, moved ones renamed, survivors in order.
+        touched = np.unique(self._tets[np.concatenate([ids, kept_tail])])
+        rows = self._incidence[touched]
+        element = np.where(rows >= 0, where[rows // 4], -1)
+        gone = element < 0
+        order = np.argsort(gone, axis=1, kind="stable")
+        self._incidence[touched] = np.take_along_axis(np.where(gone, -1, 4 * element + rows % 4), order, axis=1)
+        self._valence[touched] = (~gone).sum(axis=1)
+        for name in ("_tets", "_Dm_inv", "_rest_frame", "_elastic", "_density"):
+            array = getattr(self, name)
+            array[holes] = array[kept_tail]
         self.n_elements = m - len(ids)
-        if len(holes):
-            touched.append(self._link(holes, +1))
-        self._flush(elements=holes, nodes=np.concatenate(touched))
+        self._relink(touched)
+        self._flush(elements=holes, nodes=touched)
         self._notify(Edit(moved_from=kept_tail, moved_to=holes))
         return where
 
-    def _link(self, ids: np.ndarray, sign: int) -> np.ndarray:
-        """Add (+1) or take away (−1) elements' mass and gather entries; returns the nodes touched."""
+    def _link(self, ids: np.ndarray) -> np.ndarray:
+        """Add elements' gather entries (each corner in its node's next free slot); returns the
+        nodes touched."""
         if len(ids) == 0:
             return np.zeros(0, dtype=np.int64)
-        tets = self._tets[ids]
-        share = np.repeat(self._density[ids] * self._elastic[ids, 0] / 4.0, 4)
-        np.add.at(self._mass, tets.reshape(-1), sign * share)
         codes = (4 * ids[:, None] + np.arange(4)).reshape(-1).astype(np.int32)
-        nodes = tets.reshape(-1)
-        if sign > 0:   # each corner goes to its node's next free slot (ranked within the node)
-            order = np.argsort(nodes, kind="stable")
-            sorted_nodes = nodes[order]
-            first = np.searchsorted(sorted_nodes, sorted_nodes)
-            slot = self._valence[sorted_nodes] + np.arange(len(order)) - first
-            self._incidence[sorted_nodes, slot] = codes[order]
-            np.add.at(self._valence, nodes, 1)
-        touched = np.unique(nodes)
-        if sign < 0:   # the touched nodes' rows without the removed codes, survivors in order
-            rows = self._incidence[touched]
-            gone = np.isin(rows, codes) | (rows < 0)
-            order = np.argsort(gone, axis=1, kind="stable")
-            kept = np.take_along_axis(rows, order, axis=1)
-            kept[np.take_along_axis(gone, order, axis=1)] = -1
-            self._incidence[touched] = kept
-            self._valence[touched] = (~gone).sum(axis=1)
-        self._mass[touched[self._valence[touched] == 0]] = 0.0    # no rounding residue
+        nodes = self._tets[ids].reshape(-1)
+        order = np.argsort(nodes, kind="stable")
+        sorted_nodes = nodes[order]
+        first = np.searchsorted(sorted_nodes, sorted_nodes)
+        self._incidence[sorted_nodes, self._valence[sorted_nodes] + np.arange(len(order)) - first] = codes[order]
+        touched, count = np.unique(sorted_nodes, return_counts=True)
+        self._valence[touched] += count
+        self._relink(touched)
+        return touched
+
+    def _relink(self, touched: np.ndarray) -> None:
+        """The mass of nodes whose elements changed; those left without any detached, those
+        given one again free."""
+        self._mass[touched] = self._node_mass(touched)
         held = self._held
         held[touched[(self._valence[touched] == 0)]] = DETACHED
         held[touched[(self._valence[touched] > 0) & (held[touched] == DETACHED)]] = 0
-        return touched
+
+    def _node_mass(self, nodes: np.ndarray) -> np.ndarray:
+        """Σ ρ V / 4 over each node's elements, summed in ascending element order: to the bit
+        what a model built fresh on the same elements holds, however many edits came before (an
+        edit's ± would leave rounding residue behind)."""
+        codes = np.sort(self._incidence[nodes], axis=1)             # −1 (unused slots) first
+        elements = np.maximum(codes, 0) // 4
+        share = np.where(codes >= 0, self._density[elements] * self._elastic[elements, 0] / 4.0, 0.0)
+        return np.cumsum(share, axis=1)[:, -1] if share.shape[1] else np.zeros(len(nodes))
 
     def _flush(self, elements=(), nodes=()) -> None:
         """Write these elements' and nodes' rows, and the counts, to the device in one launch

@@ -33,7 +33,7 @@ from ..fem import CorotationalFEM, assembled, corotational
 from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL, real_numpy
-from ..launch import replayed
+from ..launch import host_view, replayed
 from ..stats import Stats
 from . import multigrid
 from .multigrid import MULTIGRID_MEMBERS, Multigrid
@@ -137,9 +137,10 @@ class StepParameters:
 
 
 class ImplicitEuler:
-    """Time integration of one soft body: its model (through `fem`), its state (`x`, `v`:
-    ndarrays of the model's nodes; `positions()`/`velocities()` for numpy) and the parameters of a
-    step (`parameters`, changed with `set_parameters`)."""
+    """Time integration of one soft body: its model (through `fem`), its state (`x`, `v`: ndarrays
+    sized by the model's node capacity, the first `model.n_nodes` rows in use; `positions()` /
+    `velocities()` for numpy) and the parameters of a step (`parameters`, changed with
+    `set_parameters`)."""
 
     def __init__(self, fem: CorotationalFEM, dt: float, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0,
@@ -179,8 +180,10 @@ class ImplicitEuler:
         self.stats = Stats()
         self._warned_inversion = False
         self._version = None
+        self._nodes = 0                # the model's nodes that the state holds
+        self._node_staging = None      # set_nodes' host rows
+        self.allocations = 0           # state allocations: 1, plus one per growth of the model
         self._pack_key = None
-        self._external = np.zeros((0, 3))
         self.multigrid = None
         self.parameters = parameters
         self._resize()
@@ -239,42 +242,47 @@ class ImplicitEuler:
     # ---- storage ------------------------------------------------------------------------------
 
     def _resize(self) -> None:
-        """Match the state to the model: its nodal arrays hold exactly the model's nodes (so the
-        contact layer and the output read them as they are), re-allocated with x and v kept when
-        nodes are added; no compilation either way."""
+        """Match the state to the model: nodal arrays sized by the model's node capacity (the
+        kernels read the active count), re-allocated only when the model's storage grew (x, v
+        and the external forces kept); nodes added since the last call join at rest, still."""
         model = self.model
-        key = (model.version, model.n_nodes)
-        if self._version == key:
-            return
+        if self._version != model.version:
+            self._allocate()
+        if self._nodes < model.n_nodes:
+            ids = np.arange(self._nodes, model.n_nodes)
+            self._nodes = model.n_nodes
+            self.set_nodes(ids, model.points[ids], np.zeros((len(ids), 3)))
+
+    def _allocate(self) -> None:
+        """Capacity-sized state; no compilation (the kernels take ndarrays of any size)."""
+        model = self.model
         self.fem.resize()
         if self.matrix is not None:
             self.matrix.resize()
         real = backend.current().real
         vec3, mat3 = ti.types.vector(3, real), ti.types.matrix(3, 3, real)
-        n = model.n_nodes
+        n = model.node_capacity
         old = getattr(self, "arrays", None)
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
         arrays["scalars"] = ti.ndarray(real, 11)
         arrays["partial"] = ti.ndarray(real, (2, (n + BLOCK - 1) // BLOCK))
         arrays["parameters"] = ti.ndarray(real, 9)
-        if old is None:
-            arrays["x"].from_numpy(model.points.astype(real_numpy()))
-        else:
-            for name in ("x", "v"):
-                values = np.zeros((n, 3), dtype=real_numpy())
-                previous = old[name].to_numpy()[:n]
+        for name in ("x", "v", "external"):
+            values = np.zeros((n, 3), dtype=real_numpy())
+            if old is not None:
+                previous = old[name].to_numpy()[:self._nodes]
                 values[:len(previous)] = previous
-                if name == "x":     # new nodes start at rest
-                    values[len(previous):] = model.points[len(previous):]
-                arrays[name].from_numpy(values)
-            external = np.zeros((n, 3), dtype=real_numpy())
-            external[:min(n, len(self._external))] = self._external[:n]
-            arrays["external"].from_numpy(external)
+            elif name == "x":
+                values[:model.n_nodes] = model.points
+            arrays[name].from_numpy(values)
+        if old is None:
+            self._nodes = model.n_nodes
         self.arrays = arrays
         self.x, self.v = arrays["x"], arrays["v"]
         self._upload_parameters()
-        self._version = key
+        self.allocations += 1
+        self._version = model.version
 
     def topology_changed(self, edit) -> None:
         self._resize()
@@ -307,8 +315,9 @@ class ImplicitEuler:
     def set_external_forces(self, forces=None) -> None:
         """Nodal forces (n, 3) in newtons applied from the next step on (tip loads, an
         instrument's push); None removes them. Forces at fixed nodes have no effect."""
+        self._resize()
         n = self.model.n_nodes
-        values = np.zeros((n, 3), dtype=real_numpy())
+        values = np.zeros((self.model.node_capacity, 3), dtype=real_numpy())
         if forces is not None:
             forces = np.asarray(forces, dtype=np.float64)
             if forces.shape != (n, 3):
@@ -317,23 +326,51 @@ class ImplicitEuler:
                 bad = np.flatnonzero(~np.isfinite(forces).all(axis=1))
                 raise TissueError(f"external forces: non-finite values at nodes {bad[:10].tolist()}")
             values[:n] = forces
-        self._resize()
-        self._external = values
         self.arrays["external"].from_numpy(values)
 
     def positions(self) -> np.ndarray:
-        self._resize()
-        return self.x.to_numpy().astype(np.float64)
+        return self._read(self.x)
 
     def velocities(self) -> np.ndarray:
+        return self._read(self.v)
+
+    def _read(self, array) -> np.ndarray:
+        """A float64 copy of a nodal array's rows in use: on the CPU from the array's own memory
+        (Taichi's to_numpy launches a parallel copy kernel, milliseconds when the cores are
+        busy), elsewhere through the device."""
         self._resize()
-        return self.v.to_numpy().astype(np.float64)
+        n = self.model.n_nodes
+        if backend.current().arch == "cpu":
+            backend.sync()
+            return host_view(array)[:n].astype(np.float64)
+        return array.to_numpy()[:n].astype(np.float64)
 
     def set_state(self, positions=None, velocities=None) -> None:
         self._resize()
+        n = self.model.n_nodes
         for array, values in ((self.x, positions), (self.v, velocities)):
             if values is not None:
-                array.from_numpy(np.asarray(values, dtype=real_numpy()).reshape(self.model.n_nodes, 3))
+                padded = np.zeros((array.shape[0], 3), dtype=real_numpy())
+                padded[:n] = np.asarray(values, dtype=np.float64).reshape(n, 3)
+                array.from_numpy(padded)
+
+    def set_nodes(self, ids, positions, velocities) -> None:
+        """Positions and velocities (k, 3) of these nodes only (new nodes of a cut: an edit
+        writes the rows it touches, not the whole state)."""
+        ids = np.asarray(ids).reshape(-1)
+        if len(ids) == 0:
+            return
+        self._resize()
+        staging = self._node_staging          # host buffers reused, so the launch is replayed
+        if staging is None or len(staging[0]) < len(ids):
+            size = max(len(ids), 16, 2 * len(staging[0]) if staging is not None else 0)
+            staging = self._node_staging = (np.empty(size, np.int32), np.empty((size, 6), real_numpy()))
+        index, rows = staging
+        index[len(ids):] = -1
+        index[:len(ids)] = ids
+        rows[:len(ids), :3] = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        rows[:len(ids), 3:] = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
+        WRITE_NODES(self.x, self.v, index, rows)
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 
@@ -390,6 +427,20 @@ class ImplicitEuler:
         for _ in range(steps):
             self.step()
         return self.positions()
+
+
+@ti.kernel
+def _write_nodes(x: ti.types.ndarray(), v: ti.types.ndarray(), ids: ti.types.ndarray(), rows: ti.types.ndarray()):
+    """x[ids[r]], v[ids[r]] = rows[r, :3], rows[r, 3:], rows whose id is −1 being padding."""
+    ti.loop_config(serialize=True)    # a few rows: the thread pool would cost more
+    for r in range(ids.shape[0]):
+        if ids[r] >= 0:
+            for c in ti.static(range(3)):
+                x[ids[r]][c] = rows[r, c]
+                v[ids[r]][c] = rows[r, 3 + c]
+
+
+WRITE_NODES = replayed(_write_nodes)
 
 
 def _unused(members) -> dict:

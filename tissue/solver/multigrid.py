@@ -144,7 +144,7 @@ class Multigrid:
 
         real, np_real = backend.current().real, real_numpy()
         vec3, mat3, vec4 = ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.vector(4, real)
-        capacity = n      # nodal arrays as the solver's state: exactly the model's nodes
+        capacity = model.node_capacity      # nodal arrays sized as the solver's state
         padded_nodes = np.zeros((capacity, 4), dtype=np.int32)
         padded_nodes[:n] = coarse
         padded_weights = np.zeros((capacity, 4), dtype=np_real)
