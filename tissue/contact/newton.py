@@ -35,6 +35,7 @@ REGULARISATION = 1e-10   # the least shift of the Newton system (× its mean dia
 MAX_SHIFT = 1e-3         # the most: the shift is |Φ| between the two
 ARMIJO = 1e-4            # sufficient decrease of ½|Φ|² along the step
 BACKTRACKS = 20          # halvings of the step before the line search gives up
+BOOST_MAX = 1e8          # the shift grows tenfold after each step the line search cut, to at most this factor
 GS_FALLBACK = 10         # Gauss-Seidel sweeps run when the line search gives up
 
 
@@ -80,7 +81,7 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
     return phi, A, B
 
 
-def newton_step(W_block, r, phi, A, B, closing):
+def newton_step(W_block, r, phi, A, B, closing, boost=1.0):
     """dr solving (A + B W) dr = -Φ: dr_i = -Φ_i (= -r_i) for the separating contacts, then the
     closing ones from the dense system among them (LAPACK's LU). W_block(rows, cols): W's
     (3|rows|, 3|cols|) block between contacts `rows` and `cols` (ids)."""
@@ -96,7 +97,7 @@ def newton_step(W_block, r, phi, A, B, closing):
     J = np.matmul(B[act], W_block(act, act).reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
     J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
-    shift = min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
+    shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
     J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
     lu = scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False)
     dr[act] = scipy.linalg.lu_solve(lu, rhs.ravel(), check_finite=False).reshape(-1, 3)
@@ -111,7 +112,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
     n = len(mu)
     rho = _rho(diagonal_blocks)
     r = np.asarray(r0, dtype=np.float64).reshape(n, 3).copy()
-    its = 0
+    its, boost = 0, 1.0
     while True:
         u = (W @ r.ravel() + q).reshape(n, 3)          # afresh: the stopping rule reads the exact u
         err2 = error2(r.ravel(), u.ravel())
@@ -119,7 +120,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
             return r.ravel(), u.ravel(), its, err2
         phi, A, B = _alart_curnier(r, u, mu, rho)
         merit = 0.5 * np.sum(phi * phi)
-        dr = newton_step(W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0)
+        dr = newton_step(W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost)
         du = (W @ dr.ravel()).reshape(n, 3)
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
@@ -129,6 +130,9 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
                 break
             t *= 0.5
         its += 1
+        # Levenberg–Marquardt's rule: a step cut by the line search had too small a shift (along
+        # W's near-null space it overshoots), a full one could take less.
+        boost = max(1.0, 0.1 * boost) if t == 1.0 else min(BOOST_MAX, 10.0 * boost)
         if accepted:
             r += t * dr
         else:
