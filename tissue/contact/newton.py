@@ -36,6 +36,9 @@ MAX_SHIFT = 1e-3         # the most: the shift is |Φ| between the two
 ARMIJO = 1e-4            # sufficient decrease of ½|Φ|² along the step
 BACKTRACKS = 20          # halvings of the step before the line search gives up
 BOOST_MAX = 1e8          # the shift grows tenfold after each step the line search cut, to at most this factor
+SINGLE_ROWS = 600        # Newton systems of this many rows and more: LU in float32, refined in float64
+REFINEMENTS = 4          # ... at most this many solves with it
+REFINED = 1e-10          # ... to this relative residual, else float64's LU
 GS_FALLBACK = 10         # Gauss-Seidel sweeps run when the line search gives up
 
 
@@ -81,10 +84,11 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
     return phi, A, B
 
 
-def newton_step(W_block, r, phi, A, B, closing, boost=1.0):
+def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0):
     """dr solving (A + B W) dr = -Φ: dr_i = -Φ_i (= -r_i) for the separating contacts, then the
-    closing ones from the dense system among them (LAPACK's LU). W_block(rows, cols): W's
-    (3|rows|, 3|cols|) block between contacts `rows` and `cols` (ids)."""
+    closing ones from the dense system among them (LAPACK's LU; see _lu_solve). W: the array, or
+    anything with W @ r; W_block(rows, cols): W's (3|rows|, 3|cols|) block between contacts
+    `rows` and `cols` (ids)."""
     dr = -phi.copy()
     act = np.flatnonzero(closing)
     if not len(act):
@@ -94,14 +98,30 @@ def newton_step(W_block, r, phi, A, B, closing, boost=1.0):
     carry = np.flatnonzero(~closing & (r != 0).any(axis=1))      # separating, still pushing: dr = -r
     if len(carry):
         rhs -= np.matmul(B[act], (W_block(act, carry) @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
-    J = np.matmul(B[act], W_block(act, act).reshape(a, 3, k)).reshape(k, k)
+    Waa = W if a == len(phi) and isinstance(W, np.ndarray) else W_block(act, act)   # (all closing: no copy)
+    J = np.matmul(B[act], Waa.reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
     J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
     shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
     J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
-    lu = scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False)
-    dr[act] = scipy.linalg.lu_solve(lu, rhs.ravel(), check_finite=False).reshape(-1, 3)
+    dr[act] = _lu_solve(J, rhs.ravel()).reshape(-1, 3)
     return dr
+
+
+def _lu_solve(J, b):
+    """J⁻¹ b by LAPACK's LU; from SINGLE_ROWS rows on, factorised in float32 (half the time) and
+    refined in float64 (a few residuals J x - b, one O(k²) product each), in float64 outright
+    where the refinement does not reach REFINED (J too ill-conditioned for float32)."""
+    if len(b) >= SINGLE_ROWS:
+        lu = scipy.linalg.lu_factor(J.astype(np.float32), overwrite_a=True, check_finite=False)
+        x = np.zeros_like(b)
+        residual = b
+        for _ in range(REFINEMENTS):
+            x += scipy.linalg.lu_solve(lu, residual.astype(np.float32), check_finite=False)
+            residual = b - J @ x
+            if np.linalg.norm(residual) <= REFINED * np.linalg.norm(b):
+                return x
+    return scipy.linalg.lu_solve(scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False), b, check_finite=False)
 
 
 def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss_seidel, error2):
@@ -120,7 +140,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
             return r.ravel(), u.ravel(), its, err2
         phi, A, B = _alart_curnier(r, u, mu, rho)
         merit = 0.5 * np.sum(phi * phi)
-        dr = newton_step(W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost)
+        dr = newton_step(W, W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost)
         du = (W @ dr.ravel()).reshape(n, 3)
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
