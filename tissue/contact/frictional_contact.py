@@ -733,7 +733,8 @@ class FrictionalContactSolver:
     def __init__(self, W, mu, method: str = "gauss_seidel", layout: str = "auto", omega=None, check: bool = True,
                  anderson: int = ANDERSON_WINDOW, reduce: bool = False):
         """anderson: Gauss-Seidel's Anderson window (0: plain sweeps; see the module docstring).
-        reduce: Gauss-Seidel sweeps the contacts in play alone, W among them formed (see `_gauss_seidel`).
+        reduce: Gauss-Seidel sweeps the contacts in play alone, W among them formed (see `_gauss_seidel`;
+        method 'gauss_seidel' only).
         check=False skips the finiteness and positive-definiteness checks of W (O(n²) and a
         3×3 eigenproblem per contact): for a caller that builds W itself (the contact stage)."""
         if method not in METHODS:
@@ -779,7 +780,7 @@ class FrictionalContactSolver:
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
         self.n, self.W, self.mu, self.method, self._D_host = n, W, mu, method, D
         self.anderson = int(anderson) if method != "jacobi" else 0
-        self.reduce = bool(reduce) and method in ("gauss_seidel", "auto")
+        self.reduce = bool(reduce) and method == "gauss_seidel"      # (auto sweeps the whole problem)
         dense = layout == "dense" or (layout == "auto" and (
             not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
         self.layout = FACTORED if factored else (DENSE if dense else CSR)
@@ -1031,7 +1032,7 @@ def solve_frictional_contact(W, q, mu, tol: float = 1e-6, max_iterations: int = 
     sweeps stall; the contact stage's default).
     layout: "auto" | "dense" | "csr" storage of W on the device (auto: block-CSR for a large sparse W).
     anderson: Gauss-Seidel's Anderson acceleration window (0: plain projected sweeps).
-    reduce: Gauss-Seidel on the contacts in play (pushed or touching) alone, W among them formed:
+    reduce: method "gauss_seidel" on the contacts in play (pushed or touching) alone, W among them formed:
     faster when most contacts are apart and many sweeps are needed.
     Taichi must be initialised (tissue.backend.init). Bad input raises TissueError.
     """
