@@ -8,9 +8,10 @@ running bench/contact.py's scenes with compliance warping: `liver_press` (339 ro
 pressed, steps with ≥ 150 rows), the same at the 4 mm alarm distance (~450 rows, steps with ≥ 420)
 and SOFA's floor scene (the 596-tet liver on a rigid floor, μ 0.5). Per scene and commit: the
 median over rounds of each round's median ms per step, per stage (free motion, detection,
-constraints, compliance, LCP, correction; the total is free motion + contact), Taichi launches per
-step, and the steps that ended above the solver's tolerance (1e-6 m). The stage's wall clock
-includes the kernels' time, so a busy machine slows both commits alike within a round. The other
+constraints, compliance, LCP, correction; the total is free motion + contact), the process's CPU
+time per step (all its threads: the work, steadier than the wall clock when other jobs share the
+two cores), Taichi launches per step, and the steps that ended above the solver's tolerance
+(1e-6 m); and this / other for the total and the CPU time. The other
 commit is checked out with `git worktree` into a temporary folder. Writes
 bench/results/contact_versus.json.
 """
@@ -32,11 +33,25 @@ from bench.common import ROOT, machine, print_machine, write_results
 
 # Runs inside a checkout: bench/contact.py's API, common to the commits compared.
 CHILD = r"""
-import json
+import json, time
 import numpy as np
 from tissue import backend
 backend.init("cpu")
 import bench.contact as bc
+from tissue.scene import Simulation
+
+steps_cpu = []                            # (CPU s of the process, rows) of every step
+step = Simulation.step
+def timed(self, *args, **kwargs):
+    start = time.process_time()
+    out = step(self, *args, **kwargs)
+    steps_cpu.append((time.process_time() - start, self.stats.counters.get("rows", 0)))
+    return out
+Simulation.step = timed
+
+def cpu_ms(steps, min_rows):
+    cpu, rows = np.array(steps_cpu[-steps:]).T
+    return 1e3 * float(np.median(cpu[rows >= min_rows]))
 
 def press(overrides, steps, min_rows):
     sim = bc.press("warped", overrides)
@@ -47,6 +62,7 @@ def press(overrides, steps, min_rows):
     with bc.LaunchCounter() as launches:
         out = bc._collect(sim, steps - 3, min_rows=min_rows)
     out.pop("per_step")
+    out["cpu_ms_per_step"] = cpu_ms(steps - 3, min_rows)
     out["launches_per_step"] = sum(launches.counts.values()) / (steps - 3)
     rows = np.array(stage.stats.history["rows"][start:])
     residual = np.array(stage.stats.history["gs_residual"][start:])[rows >= min_rows]
@@ -57,6 +73,7 @@ out = {"liver_press": press([], 80, 150),
        "liver_press_450_rows": press([f"contact.distance={bc.WIDE_DISTANCE}"], 72, 420),
        "liver_floor": bc.run_floor("warped", 80)}
 out["liver_floor"].pop("per_step")
+out["liver_floor"]["cpu_ms_per_step"] = cpu_ms(77, 30)
 print("RESULT " + json.dumps(out))
 """
 SCENES = ("liver_press", "liver_press_450_rows", "liver_floor")
@@ -78,6 +95,7 @@ def summary(runs: list[dict]) -> dict:
     for scene in SCENES:
         r = [run[scene] for run in runs]
         entry = {"ms_per_step": {c: float(np.median([x["ms_per_step"][c] for x in r])) for c in COLUMNS},
+                 "cpu_ms_per_step": float(np.median([x["cpu_ms_per_step"] for x in r])),
                  "rows_median": float(np.median([x["rows_median"] for x in r])),
                  "gs_iterations_median": float(np.median([x["gs_iterations_median"] for x in r]))}
         if "launches_per_step" in r[0]:
@@ -118,14 +136,18 @@ def main(argv=None) -> None:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
     result = {"this": summary(runs["this"]), "other": summary(runs["other"])}
+    result["this_over_other"] = {scene: {"total": result["this"][scene]["ms_per_step"]["total"]
+                                         / result["other"][scene]["ms_per_step"]["total"],
+                                         "cpu": result["this"][scene]["cpu_ms_per_step"]
+                                         / result["other"][scene]["cpu_ms_per_step"]} for scene in SCENES}
     for scene in SCENES:
         print(f"\n{scene} (rows median {result['this'][scene]['rows_median']:.0f}), ms/step:")
-        print(f"{'':<8}" + "".join(f"{c:>13}" for c in COLUMNS) + f"{'launches':>10}")
+        print(f"{'':<8}" + "".join(f"{c:>13}" for c in COLUMNS) + f"{'CPU ms':>10}{'launches':>10}")
         for name, label in (("this", "this"), ("other", other)):
             e = result[name][scene]
             print(f"{label:<8}" + "".join(f"{e['ms_per_step'][c]:13.2f}" for c in COLUMNS)
-                  + (f"{e['launches_per_step']:10.1f}" if "launches_per_step" in e else ""))
-    write_results("contact_versus", dict(machine=info, other=other, rounds=args.rounds, **result))
+                  + f"{e['cpu_ms_per_step']:10.2f}" + (f"{e['launches_per_step']:10.1f}" if "launches_per_step" in e else ""))
+    write_results("contact_versus", dict(machine=info, other_commit=other, rounds=args.rounds, **result))
 
 
 if __name__ == "__main__":
