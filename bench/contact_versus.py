@@ -6,7 +6,8 @@ This shared machine's speed drifts by tens of percent within an hour, so contact
 commits are compared side by side: subprocesses of each checkout alternate, round after round, each
 running bench/contact.py's scenes with compliance warping: `liver_press` (339 rows median while
 pressed, steps with ≥ 150 rows), the same at the 4 mm alarm distance (~450 rows, steps with ≥ 420)
-and SOFA's floor scene (the 596-tet liver on a rigid floor, μ 0.5). Per scene and commit: the
+and SOFA's floor scene (the 596-tet liver on a rigid floor, μ 0.5), also with the exact compliance
+(CHOLMOD each step: SOFA's sparse LDLᵀ counterpart). Per scene and commit: the
 median over rounds of each round's median ms per step, per stage (free motion, detection,
 constraints, compliance, LCP, correction; the total is free motion + contact), the process's CPU
 time per step (all its threads: the work, steadier than the wall clock when other jobs share the
@@ -72,11 +73,14 @@ def press(overrides, steps, min_rows):
 out = {"liver_press": press([], 80, 150),
        "liver_press_450_rows": press([f"contact.distance={bc.WIDE_DISTANCE}"], 72, 420),
        "liver_floor": bc.run_floor("warped", 80)}
-out["liver_floor"].pop("per_step")
 out["liver_floor"]["cpu_ms_per_step"] = cpu_ms(77, 30)
+out["liver_floor_exact"] = bc.run_floor("exact", 80)
+out["liver_floor_exact"]["cpu_ms_per_step"] = cpu_ms(77, 30)
+for name in ("liver_floor", "liver_floor_exact"):
+    out[name].pop("per_step")
 print("RESULT " + json.dumps(out))
 """
-SCENES = ("liver_press", "liver_press_450_rows", "liver_floor")
+SCENES = ("liver_press", "liver_press_450_rows", "liver_floor", "liver_floor_exact")
 COLUMNS = ("free_motion", "detection", "constraints", "compliance", "lcp", "correction", "contact", "total")
 
 
