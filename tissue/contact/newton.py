@@ -15,12 +15,16 @@ solves (A + B W) dr = -Φ. Contacts with r̃_n ≤ 0 (separating) have A = I, B 
 dr_i = -r_i outright; only the others ("closing") enter the linear system, with W among them
 (and, on the right, W between them and the separating contacts that still carry a reaction). Within
 an alarm distance most contacts separate, so that system is small; of the press plate's 722
-contacts 340-700 close, a system of up to ~2,100² (a dense LU, LAPACK). A multiple ε of the identity keeps it
-solvable where W is singular (with more contact rows than the dofs they move, sticking contacts'
-rows of W are dependent): ε = clip(|Φ|, REGULARISATION, MAX_SHIFT) times the system's mean
+contacts 340-722 close, a system of up to ~2,100² (a dense LU, LAPACK; from SINGLE_ROWS rows on
+in float32, refined in float64: half the time). A multiple ε of the identity keeps it solvable
+where W is singular (with more contact rows than the dofs they move, sticking contacts' rows of W
+are dependent): ε = boost × clip(|Φ|, REGULARISATION, MAX_SHIFT) times the system's mean
 diagonal, a Levenberg–Marquardt-like shift that vanishes with Φ (so the local convergence stays
 fast) but damps the steps along W's null space far from the solution, where a fixed 1e-10 let
-them grow without bound and stall the line search (tests: 300 contacts on 60 nodes).
+them grow without bound and stall the line search (tests: 300 contacts on 60 nodes). `boost`
+follows Levenberg–Marquardt's rule: ×10 after a step the line search cut, ÷10 (down to 1) after a
+full one; without it, steps near a solution on singular W (liver_press: 12 closing contacts whose
+rows outnumber their nodes' dofs) were cut to tiny ones, and Newton crawled to the cap.
 
 Globalisation: a backtracking line search on ½|Φ|² (Armijo); when it fails (nonsmooth kinks, a
 singular step), GS_FALLBACK sweeps of projected Gauss-Seidel from the current r, then Newton again.
