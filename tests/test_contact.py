@@ -119,6 +119,27 @@ def test_obstacle_motion_gives_material_point_displacement(backend):
     assert set(zip(c.vertex.tolist(), c.other.tolist())) == {(0, 0), (1, 1)}
 
 
+def test_replayed_detection_follows_moved_obstacles_and_positions(backend):
+    """The detection launch is replayed from the second call on (same arrays, poses written in
+    place): after the obstacle and the points moved, the contacts equal a new detector's."""
+    from tissue.contact.detection import Detector
+    from tissue.contact.obstacles import RigidObstacle, Sphere
+
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-0.1, 0.1, (300, 3))
+    faces = np.arange(300).reshape(-1, 3)
+    sphere = RigidObstacle(Sphere((0, 0, 0), 0.05), motion=lambda t: np.array([0.2, 0.0, 0.0]) * t)
+    det = Detector([faces], [sphere], soft_soft=False)
+    for t in (0.0, 0.1, 0.25):                   # the first call records the launch, the next replay it
+        moved = p + 0.01 * t
+        c = det.detect([moved], 0.02, [sphere.pose(t)], [sphere.pose(t - 0.01)])
+        fresh = Detector([faces], [sphere], soft_soft=False).detect([moved], 0.02, [sphere.pose(t)],
+                                                                    [sphere.pose(t - 0.01)])
+        assert len(c) > 10
+        for name in ("sample", "other", "gap", "normal", "closest", "other_motion"):
+            np.testing.assert_array_equal(getattr(c, name), getattr(fresh, name), err_msg=f"t={t}: {name}")
+
+
 def test_triangle_mesh_obstacle_agrees_with_box_primitive(backend):
     pytest.importorskip("open3d")
     from tissue.contact.detection import Detector

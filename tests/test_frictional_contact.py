@@ -565,3 +565,45 @@ def test_newton_factored_and_sparse_match_dense(solve):
     for r in (rd, rf, rs):
         assert natural_map(Wd, q, mu, r) <= 1e-11
     np.testing.assert_allclose(rf, rd, atol=1e-8 * np.abs(rd).max())
+
+
+def test_auto_equals_gauss_seidel_where_the_sweeps_converge(solve):
+    """auto's sweeps are Gauss-Seidel's own launch: on a problem they finish, the same sweeps and
+    the same reactions; on the rigid stack (singular W) they stall within AUTO_SWEEPS and Newton
+    finishes."""
+    from tissue.contact.frictional_contact import AUTO_SWEEPS
+
+    rng = np.random.default_rng(11)
+    W = random_delassus(40, rng)
+    q = np.column_stack([rng.uniform(-1, 0.5, 40), rng.standard_normal((40, 2))]).ravel()
+    ra, auto = solve(W, q, 0.4, tol=1e-8, max_iterations=AUTO_SWEEPS, method="auto")
+    rg, gs = solve(W, q, 0.4, tol=1e-8, max_iterations=AUTO_SWEEPS, method="gauss_seidel")
+    assert gs.converged and auto.iterations == gs.iterations
+    np.testing.assert_array_equal(ra, rg)
+    W, q, mu, *_ = box_stack(6, 0.01, 9.81)
+    r, info = solve(W, q, mu, tol=1e-10, max_iterations=200, method="auto")
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-10
+
+
+@pytest.mark.parametrize("condition, factorised", [(1e2, ["float32"]), (1e12, ["float32", "float64"])])
+def test_newton_system_solve_matches_lapack(monkeypatch, condition, factorised):
+    """Newton's large systems: LU in float32 refined in float64 (well conditioned), or float64's
+    LU after the refinement failed (too ill-conditioned for float32): backward stable as float64's
+    LU is, and the solution of numpy's float64 solve within the conditioning's bound."""
+    import scipy.linalg
+
+    from tissue.contact.newton import SINGLE_ROWS, _lu_solve
+
+    rng = np.random.default_rng(12)
+    k = SINGLE_ROWS + 3
+    U, _ = np.linalg.qr(rng.standard_normal((k, k)))
+    V, _ = np.linalg.qr(rng.standard_normal((k, k)))
+    J = (U * np.geomspace(1.0, 1.0 / condition, k)) @ V.T      # non-symmetric, as (A + B W) is; ‖J‖ = 1
+    b = rng.standard_normal(k)
+    dtypes, lu_factor = [], scipy.linalg.lu_factor
+    monkeypatch.setattr(scipy.linalg, "lu_factor", lambda a, **kw: dtypes.append(str(a.dtype)) or lu_factor(a, **kw))
+    x = _lu_solve(J.copy(), b)
+    assert dtypes == factorised
+    reference = np.linalg.solve(J, b)
+    assert np.linalg.norm(J @ x - b) <= 1e-12 * (np.linalg.norm(b) + np.linalg.norm(x))
+    assert np.linalg.norm(x - reference) <= 1e-13 * condition * np.linalg.norm(reference)

@@ -36,6 +36,7 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
+from ..launch import replayed
 from .obstacles import BOX, CAPSULE, PLANE, SPHERE
 from .storage import Storage
 
@@ -436,6 +437,11 @@ class _Surface:
         self.out = np.empty((self.n_samples + 1, n_slots, 11), npr)
 
 
+# The detection launch repeats its arguments step after step (the bodies' arrays, the buffers kept
+# here): replayed, it skips Taichi's setting of its ~30 arguments.
+_detect_replayed = replayed(_detect)
+
+
 class Detector:
     """Proximity queries between the soft bodies' surfaces and the rigid obstacles.
 
@@ -468,6 +474,7 @@ class Detector:
         if balls:
             self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
         self._moving = [o.motion is not None for o in self.obstacles]
+        self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._fields = {}
         self._bodies = None
         self.state, self._no_state = None, np.zeros((1, 6))
@@ -515,8 +522,9 @@ class Detector:
         identity = [(np.eye(3), np.zeros(3))] * no
         poses = identity if poses is None else poses
         previous_poses = poses if previous_poses is None else previous_poses
-        packed = np.array([np.r_[R.reshape(-1), t] for R, t in poses], dtype=self._np).reshape(-1, 12) if no \
-            else np.zeros((1, 12), self._np)
+        packed = self._poses                  # filled in place: the launches replay (tissue.launch)
+        for o, (R, t) in enumerate(poses):
+            packed[o, :9], packed[o, 9:] = R.reshape(-1), t
         parts = []
         sizes = [f.shape[0] for f in fields_]
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
@@ -551,11 +559,11 @@ class Detector:
                 other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
             ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
             while True:
-                _detect(x, body.nodes, body.weights, self._prm, self._prm_offsets, self._prm_bounds, self._bounds,
-                        poses, fields_[b], other.faces, other.surface, other.vf_offsets, other.vf, other.normals,
-                        other.start, other.cursor, ids, other.grid_i, other.grid_f, other.cell + 2 * alarm,
-                        alarm, slot, out, x if v is None else v, dt, state, rigid, soft, v is not None and k == 0,
-                        self.serial)
+                _detect_replayed(x, body.nodes, body.weights, self._prm, self._prm_offsets, self._prm_bounds,
+                                 self._bounds, poses, fields_[b], other.faces, other.surface, other.vf_offsets,
+                                 other.vf, other.normals, other.start, other.cursor, ids, other.grid_i, other.grid_f,
+                                 other.cell + 2 * alarm, alarm, slot, out, x if v is None else v, dt, state, rigid,
+                                 soft, v is not None and k == 0, self.serial)
                 needed = int(out[-1, slot, 0]) if soft else 0
                 if needed <= ids.shape[0]:
                     break

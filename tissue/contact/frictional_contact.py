@@ -20,9 +20,9 @@ the norm over all 3n components; it is zero exactly at a solution. (Siconos divi
 the 1 + keeps it defined for q = 0.)
 
 Methods:
-  * "auto" (the contact stage's default): Gauss-Seidel below while it makes progress (launches
-    of AUTO_PHASES sweeps, each only if the one before at least halved the residual), then
-    "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
+  * "auto" (the contact stage's default): Gauss-Seidel below over the whole problem while it
+    makes progress (every AUTO_PHASE sweeps at least halve the residual, at most AUTO_SWEEPS,
+    one launch), then "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
     sweeps, at microseconds each; the rest (many strongly coupled contacts, more rows than the
     dofs they move: the press plate's 2,166 rows, where a sweep gains ~1 % of the residual) end in
     a few Newton steps (bench/contact_solvers.py).
@@ -87,8 +87,9 @@ ANDERSON_RESTARTS = 10    # ... rejecting a combination that starts worse than t
 JACOBI_CHECK_EVERY = 10   # Jacobi reads its residual back (a device sync) every this many iterations
 JACOBI_STALL_CHECKS = 20  # ... and halves omega after this many checks without a new best residual
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
-AUTO_PHASES = (16, 16, 32)  # auto: Gauss-Seidel launches (sweeps each) before Newton, each run only if the
-                            # one before at least halved the residual
+AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE sweeps halve the residual, at
+                                  # most AUTO_SWEEPS, then Newton
+NEWTON_DENSE_ROWS = 3000  # Newton forms a factored W as an array up to this many rows (72 MB)
 REVISIT_EVERY = 8         # Gauss-Seidel: every this many sweeps, one that visits the contacts apart too
 
 
@@ -591,15 +592,24 @@ def _gauss_seidel(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndar
                   Wd: ti.types.ndarray(), q: ti.types.ndarray(), mu: ti.types.ndarray(), r: ti.types.ndarray(),
                   u: ti.types.ndarray(), y: ti.types.ndarray(), z: ti.types.ndarray(), hist: ti.types.ndarray(),
                   gram: ti.types.ndarray(), window: ti.i32, restarts: ti.i32, max_it: ti.i32, tol2: float,
-                  scale: float, revisit: ti.i32, stats: ti.types.ndarray()):
+                  scale: float, revisit: ti.i32, stall: ti.i32, stats: ti.types.ndarray()):
+    """Sweeps until the residual is ≤ tol2 (squared) or max_it sweeps; with stall > 0 also when
+    `stall` sweeps did not halve the residual (stats[2] = 1: stalled), read every `stall` sweeps."""
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, restarts if window > 0 else 0, 1e300
+    phase_err2, stalled = 0.0, 0
     n = mu.shape[0]
     _refresh(layout, a, b, c, r, y, z, scale)
     while True:
-        if it == 0 or est <= tol2 or it >= max_it:
+        at_phase = stall > 0 and it % stall == 0
+        if it == 0 or est <= tol2 or it >= max_it or at_phase:
             err2 = _residual(layout, a, b, c, q, mu, r, u, y, z, scale)
             if err2 <= tol2 or it >= max_it:
                 break
+            if at_phase:
+                if it > 0 and err2 > 0.25 * phase_err2:
+                    stalled = 1
+                    break
+                phase_err2 = err2
         _save(r, hist, 2 * window + 2, on)
         est = 0.0
         for i in range(n):
@@ -630,6 +640,7 @@ def _gauss_seidel(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndar
             _refresh(layout, a, b, c, r, y, z, scale)
     stats[0] = it
     stats[1] = err2
+    stats[2] = stalled
 
 
 # ----------------------------------------------------------------------------------------------
@@ -722,7 +733,8 @@ class FrictionalContactSolver:
     def __init__(self, W, mu, method: str = "gauss_seidel", layout: str = "auto", omega=None, check: bool = True,
                  anderson: int = ANDERSON_WINDOW, reduce: bool = False):
         """anderson: Gauss-Seidel's Anderson window (0: plain sweeps; see the module docstring).
-        reduce: Gauss-Seidel sweeps the contacts in play alone, W among them formed (see `_gauss_seidel`).
+        reduce: Gauss-Seidel sweeps the contacts in play alone, W among them formed (see `_gauss_seidel`;
+        method 'gauss_seidel' only).
         check=False skips the finiteness and positive-definiteness checks of W (O(n²) and a
         3×3 eigenproblem per contact): for a caller that builds W itself (the contact stage)."""
         if method not in METHODS:
@@ -768,7 +780,7 @@ class FrictionalContactSolver:
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
         self.n, self.W, self.mu, self.method, self._D_host = n, W, mu, method, D
         self.anderson = int(anderson) if method != "jacobi" else 0
-        self.reduce = bool(reduce) and method in ("gauss_seidel", "auto")
+        self.reduce = bool(reduce) and method == "gauss_seidel"      # (auto sweeps the whole problem)
         dense = layout == "dense" or (layout == "auto" and (
             not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
         self.layout = FACTORED if factored else (DENSE if dense else CSR)
@@ -812,7 +824,7 @@ class FrictionalContactSolver:
         m = 3 * self.n
         self._Wd, self._mu = nd(D), nd(self.mu)
         self._q, self._r, self._u = (_array((m,), real) for _ in range(3))
-        self._stats = _array((2,), real)
+        self._stats = _array((3,), real)
         m = self.anderson                            # Anderson's history (see _anderson)
         self._hist = _array((2 * m + 3, 3 * self.n) if m else (1, 1), real)
         self._gram = _array((m, 2 * m + 2) if m else (1, 1), real)
@@ -877,14 +889,15 @@ class FrictionalContactSolver:
         info = ContactInfo(iterations, residual, elapsed, residual <= tol, self.method)
         return r, info
 
-    def _sweeps(self, max_iterations, tol_abs) -> int:
+    def _sweeps(self, max_iterations, tol_abs, stall: int = 0) -> int:
         """Gauss-Seidel sweeps over the whole problem from the current r, in one launch (0 sweeps:
-        u and the residual of r alone)."""
+        u and the residual of r alone); with `stall`, stopped early when that many sweeps did
+        not halve the residual (self._stalled)."""
         _gauss_seidel(self.layout, *self._abc, self._Wd, self._q, self._mu, self._r, self._u, self._y, self._z,
                       self._hist, self._gram, self.anderson, ANDERSON_RESTARTS, max_iterations, tol_abs ** 2,
-                      self._scale, REVISIT_EVERY, self._stats)
+                      self._scale, REVISIT_EVERY, stall, self._stats)
         stats = self._stats.to_numpy()
-        self._last_error2 = float(stats[1])
+        self._last_error2, self._stalled = float(stats[1]), bool(stats[2])
         return int(stats[0])
 
     def _gauss_seidel(self, max_iterations, tol_abs):
@@ -932,18 +945,11 @@ class FrictionalContactSolver:
         return its
 
     def _auto(self, max_iterations, tol_abs):
-        """Gauss-Seidel (most warm-started problems end within a few dozen sweeps, at a few µs a
-        sweep) while it makes progress: launches of AUTO_PHASES sweeps, each only if the one
-        before at least halved the residual; then Newton from where it stopped (the problems
-        whose sweeps crawl: many coupled contacts, W ill-conditioned or singular). The first
-        launch, 0 sweeps, reads the start's residual."""
-        its = self._gauss_seidel(0, tol_abs)
-        before = np.inf
-        for sweeps in AUTO_PHASES:
-            if self._last_error2 <= tol_abs ** 2 or its >= max_iterations or self._last_error2 > 0.25 * before:
-                break
-            before = self._last_error2
-            its += self._gauss_seidel(min(sweeps, max_iterations - its), tol_abs)
+        """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
+        sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps at least halve the residual, up to
+        AUTO_SWEEPS sweeps, in one launch; then Newton from where it stopped (the problems whose
+        sweeps crawl: many coupled contacts, W ill-conditioned or singular)."""
+        its = self._sweeps(min(AUTO_SWEEPS, max_iterations), tol_abs, AUTO_PHASE)
         if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:
             return its
         return its + self._newton(max_iterations - its, tol_abs)
@@ -956,7 +962,13 @@ class FrictionalContactSolver:
             done = self._sweeps(sweeps, tol_abs) if sweeps else 0
             return self._r.to_numpy().astype(np.float64), done
 
-        r, u, its, err2 = newton.solve(self.W, self._block, self._q_host, self.mu, self._D_host,
+        W, block = self.W, self._block
+        if self.layout == FACTORED and 3 * self.n <= NEWTON_DENSE_ROWS:
+            # Newton reads W's blocks among the closing contacts and products with W at every
+            # step: formed once here, they are slices and BLAS calls, not a pass over the factors.
+            W = self.W.toarray()
+            block = lambda rows, cols: W[np.ix_(_dofs(rows), _dofs(cols))]
+        r, u, its, err2 = newton.solve(W, block, self._q_host, self.mu, self._D_host,
                                        self._r.to_numpy().astype(np.float64), tol_abs, max_iterations, fallback,
                                        lambda r, u: _error2_numpy(r, u, self.mu))
         self._r.from_numpy(r.astype(self._npr))
@@ -1020,7 +1032,7 @@ def solve_frictional_contact(W, q, mu, tol: float = 1e-6, max_iterations: int = 
     sweeps stall; the contact stage's default).
     layout: "auto" | "dense" | "csr" storage of W on the device (auto: block-CSR for a large sparse W).
     anderson: Gauss-Seidel's Anderson acceleration window (0: plain projected sweeps).
-    reduce: Gauss-Seidel on the contacts in play (pushed or touching) alone, W among them formed:
+    reduce: method "gauss_seidel" on the contacts in play (pushed or touching) alone, W among them formed:
     faster when most contacts are apart and many sweeps are needed.
     Taichi must be initialised (tissue.backend.init). Bad input raises TissueError.
     """

@@ -15,12 +15,16 @@ solves (A + B W) dr = -Φ. Contacts with r̃_n ≤ 0 (separating) have A = I, B 
 dr_i = -r_i outright; only the others ("closing") enter the linear system, with W among them
 (and, on the right, W between them and the separating contacts that still carry a reaction). Within
 an alarm distance most contacts separate, so that system is small; of the press plate's 722
-contacts 340-700 close, a system of up to ~2,100² (a dense LU, LAPACK). A multiple ε of the identity keeps it
-solvable where W is singular (with more contact rows than the dofs they move, sticking contacts'
-rows of W are dependent): ε = clip(|Φ|, REGULARISATION, MAX_SHIFT) times the system's mean
+contacts 340-722 close, a system of up to ~2,100² (a dense LU, LAPACK; from SINGLE_ROWS rows on
+in float32, refined in float64: half the time). A multiple ε of the identity keeps it solvable
+where W is singular (with more contact rows than the dofs they move, sticking contacts' rows of W
+are dependent): ε = boost × clip(|Φ|, REGULARISATION, MAX_SHIFT) times the system's mean
 diagonal, a Levenberg–Marquardt-like shift that vanishes with Φ (so the local convergence stays
 fast) but damps the steps along W's null space far from the solution, where a fixed 1e-10 let
-them grow without bound and stall the line search (tests: 300 contacts on 60 nodes).
+them grow without bound and stall the line search (tests: 300 contacts on 60 nodes). `boost`
+follows Levenberg–Marquardt's rule: ×10 after a step the line search cut, ÷10 (down to 1) after a
+full one; without it, steps near a solution on singular W (liver_press: 12 closing contacts whose
+rows outnumber their nodes' dofs) were cut to tiny ones, and Newton crawled to the cap.
 
 Globalisation: a backtracking line search on ½|Φ|² (Armijo); when it fails (nonsmooth kinks, a
 singular step), GS_FALLBACK sweeps of projected Gauss-Seidel from the current r, then Newton again.
@@ -35,6 +39,10 @@ REGULARISATION = 1e-10   # the least shift of the Newton system (× its mean dia
 MAX_SHIFT = 1e-3         # the most: the shift is |Φ| between the two
 ARMIJO = 1e-4            # sufficient decrease of ½|Φ|² along the step
 BACKTRACKS = 20          # halvings of the step before the line search gives up
+BOOST_MAX = 1e8          # the shift grows tenfold after each step the line search cut, to at most this factor
+SINGLE_ROWS = 600        # Newton systems of this many rows and more: LU in float32, refined in float64
+REFINEMENTS = 4          # ... at most this many solves with it
+REFINED = 1e-10          # ... to this relative residual, else float64's LU
 GS_FALLBACK = 10         # Gauss-Seidel sweeps run when the line search gives up
 
 
@@ -80,10 +88,11 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
     return phi, A, B
 
 
-def newton_step(W_block, r, phi, A, B, closing):
+def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0):
     """dr solving (A + B W) dr = -Φ: dr_i = -Φ_i (= -r_i) for the separating contacts, then the
-    closing ones from the dense system among them (LAPACK's LU). W_block(rows, cols): W's
-    (3|rows|, 3|cols|) block between contacts `rows` and `cols` (ids)."""
+    closing ones from the dense system among them (LAPACK's LU; see _lu_solve). W: the array, or
+    anything with W @ r; W_block(rows, cols): W's (3|rows|, 3|cols|) block between contacts
+    `rows` and `cols` (ids)."""
     dr = -phi.copy()
     act = np.flatnonzero(closing)
     if not len(act):
@@ -93,14 +102,30 @@ def newton_step(W_block, r, phi, A, B, closing):
     carry = np.flatnonzero(~closing & (r != 0).any(axis=1))      # separating, still pushing: dr = -r
     if len(carry):
         rhs -= np.matmul(B[act], (W_block(act, carry) @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
-    J = np.matmul(B[act], W_block(act, act).reshape(a, 3, k)).reshape(k, k)
+    Waa = W if a == len(phi) and isinstance(W, np.ndarray) else W_block(act, act)   # (all closing: no copy)
+    J = np.matmul(B[act], Waa.reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
     J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
-    shift = min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
+    shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
     J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
-    lu = scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False)
-    dr[act] = scipy.linalg.lu_solve(lu, rhs.ravel(), check_finite=False).reshape(-1, 3)
+    dr[act] = _lu_solve(J, rhs.ravel()).reshape(-1, 3)
     return dr
+
+
+def _lu_solve(J, b):
+    """J⁻¹ b by LAPACK's LU; from SINGLE_ROWS rows on, factorised in float32 (half the time) and
+    refined in float64 (a few residuals J x - b, one O(k²) product each), in float64 outright
+    where the refinement does not reach REFINED (J too ill-conditioned for float32)."""
+    if len(b) >= SINGLE_ROWS:
+        lu = scipy.linalg.lu_factor(J.astype(np.float32), overwrite_a=True, check_finite=False)
+        x = np.zeros_like(b)
+        residual = b
+        for _ in range(REFINEMENTS):
+            x += scipy.linalg.lu_solve(lu, residual.astype(np.float32), check_finite=False)
+            residual = b - J @ x
+            if np.linalg.norm(residual) <= REFINED * np.linalg.norm(b):
+                return x
+    return scipy.linalg.lu_solve(scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False), b, check_finite=False)
 
 
 def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss_seidel, error2):
@@ -111,7 +136,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
     n = len(mu)
     rho = _rho(diagonal_blocks)
     r = np.asarray(r0, dtype=np.float64).reshape(n, 3).copy()
-    its = 0
+    its, boost = 0, 1.0
     while True:
         u = (W @ r.ravel() + q).reshape(n, 3)          # afresh: the stopping rule reads the exact u
         err2 = error2(r.ravel(), u.ravel())
@@ -119,7 +144,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
             return r.ravel(), u.ravel(), its, err2
         phi, A, B = _alart_curnier(r, u, mu, rho)
         merit = 0.5 * np.sum(phi * phi)
-        dr = newton_step(W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0)
+        dr = newton_step(W, W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost)
         du = (W @ dr.ravel()).reshape(n, 3)
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
@@ -129,6 +154,9 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
                 break
             t *= 0.5
         its += 1
+        # Levenberg–Marquardt's rule: a step cut by the line search had too small a shift (along
+        # W's near-null space it overshoots), a full one could take less.
+        boost = max(1.0, 0.1 * boost) if t == 1.0 else min(BOOST_MAX, 10.0 * boost)
         if accepted:
             r += t * dr
         else:

@@ -49,9 +49,10 @@ from .detection import Contacts, Detector
 from .frictional_contact import ContactInfo, FactoredDelassus, FrictionalContactSolver
 from .obstacles import RigidObstacle
 
-# Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`) costs about a
-# millisecond of numpy and saves ~20 µs a sweep: the stage uses it after a step that took more
-# sweeps than this (the problems change little from one step to the next).
+# Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`; method 'gauss_seidel'
+# only: 'auto' sweeps the whole problem, which cost less on liver_press's problems, side by side)
+# costs about a millisecond of numpy and saves ~20 µs a sweep: the stage uses it after a step that
+# took more sweeps than this (the problems change little from one step to the next).
 REDUCE_ABOVE = 24
 
 
