@@ -10,7 +10,8 @@ Hand-off. After each step the simulation publishes the step's restricted problem
 (tissue.haptics.lcp.restrict: W among the instrument's rows and those coupled to them, δ_free, λ, μ,
 the rows' blocks on the jaws, the jaws' state) into a SharedRecord; the loop, every tick, reads
 the device, writes its pose into a second SharedRecord (the simulation's next step reads it as
-the coupling's target), re-solves the newest problem for that pose and sends the force.
+the coupling's target), re-solves the newest problem for that pose and sends the force (a new
+step's correction blended in over a step: tissue.haptics.continuity).
 
 SharedRecord: a header (sequence, length, CRC-32) and a float64 payload in one shared-memory
 block, written under a sequence lock: the writer makes the sequence odd, writes the payload and
@@ -197,6 +198,7 @@ def _sleep_until(deadline: float) -> None:
 def _run(config: _Config, epoch, ready, stop) -> None:
     """The haptic process: see the module docstring."""
     from .. import backend
+    from .continuity import ContinuousForce
     from .lcp import HapticSolver
 
     priority = "normal"
@@ -207,8 +209,9 @@ def _run(config: _Config, epoch, ready, stop) -> None:
         except (PermissionError, AttributeError, OSError):
             priority = "normal (real-time priority refused)"
     backend.init("cpu", "f64", cpu_max_num_threads=1)
-    solver = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
-    solver.warm()
+    resolve = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
+    resolve.warm()
+    solver = ContinuousForce(resolve, config.rate)
     problems = SharedRecord(0, name=config.problem_channel)
     poses = SharedRecord(0, name=config.pose_channel)
     device = config.device
