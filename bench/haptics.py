@@ -6,21 +6,24 @@ For each constraint band (about 50, 150 and 450 rows: the grasp scene with its c
 and alarm distance set to reach them), the scene runs in real time (a step starts when the clock
 reaches it; 40 ms steps) alone, with the haptic loop in its own process at 1 kHz (a scripted device
 on the scene's path; after each step the simulation publishes the restricted problem) at normal
-priority, and with the loop at real-time priority (SCHED_FIFO, when allowed), the three
-alternated ROUNDS times (this shared machine's load drifts from minute to minute). Reported: the
+priority on any core, at normal priority pinned (the loop on core 1, the simulation on core 0),
+and pinned at real-time priority (SCHED_FIFO, when allowed), the four alternated ROUNDS times
+(this shared machine's load drifts from minute to minute; the 1-minute load average before and
+after each run is recorded). The loop sleeps to 60 µs before each tick and spins the rest
+(tissue.haptics.loop), its per-tick work bounded by the re-solve's sweep cap. Reported: the
 loop's achieved rate and its tick periods (median, p99, max) while the simulation ran, the
 re-solve's time inside the loop (Python included) and alone on the same problems, the restricted
-problems' size, the simulation's step time (median) without and with the loop, the publish's own
-time, and the loop's CPU time (the share of a core it takes from the simulation and everything
-else: on this shared machine the step times of consecutive runs differ by more than the loop
-could cost). The 150-row band's first real-time-priority run gives figures/haptics_force.png: the
-force the device renders at the simulation's rate (held) and at the loop's.
+problems' size, the simulation's step time (median) without and with the loop (pooled, and each
+round against the same round's run alone), the publish's own time, and the loop's CPU time. The
+150-row band's first pinned normal-priority run gives figures/haptics_force.png: the force the
+device renders at the simulation's rate (held) and at the loop's.
 
     python -m bench.haptics            # all three bands (~7 min on 2 cores)
     python -m bench.haptics --quick    # the 150-row band only
 """
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -36,7 +39,11 @@ BANDS = {   # rows wanted: the grasp scene's contact settings that give about th
     450: ("contact.sampling=faces", "contact.distance=0.007"),
 }
 ROUNDS = 2       # runs of each kind per band, alternated (this shared machine's load drifts)
-KINDS = ("alone", "normal", "realtime")
+# alone: no haptic loop; normal: the loop at normal priority, both processes on any core; pinned:
+# the loop at normal priority on core 1, the simulation on core 0; realtime: pinned, the loop at
+# SCHED_FIFO (when allowed).
+KINDS = ("alone", "normal", "pinned", "realtime")
+LOOP_CORE, SIM_CORES = 1, {0}
 
 
 def build(overrides):
@@ -49,11 +56,17 @@ def build(overrides):
     return sim, layer
 
 
-def run(overrides, loop=None):
+def run(overrides, loop=None, pin=False):
     """The scene in real time (a HapticLoop, if given, started once the scene is built: its clock
-    is the scene's); per step: (time, ms of sim.step, ms of publish, rows, force (3), grip)."""
+    is the scene's; with `pin`, this process on SIM_CORES while it runs); per step: (time, ms of
+    sim.step, ms of publish, rows, force (3), grip), the problems published, the clock at the end
+    and the load averages (1 min) before and after."""
+    from tissue.haptics.loop import pin_process
+
     sim, layer = build(overrides)
     instrument = next(iter(layer.instruments.values()))
+    load = [os.getloadavg()[0]]
+    allowed = pin_process(SIM_CORES) if pin else None
     if loop is not None:
         loop.start()
         instrument.device = loop.device_pose
@@ -80,7 +93,10 @@ def run(overrides, loop=None):
     finally:
         if loop is not None:
             loop.stop()
-    return np.array(records), problems, end
+        if allowed is not None:
+            pin_process(allowed)
+    load.append(os.getloadavg()[0])
+    return np.array(records), problems, end, load
 
 
 def resolve_times(problems) -> np.ndarray:
@@ -129,16 +145,18 @@ def band(rows_wanted, overrides, figure=None):
 
     steps = {kind: [] for kind in KINDS}
     loops = {kind: [] for kind in KINDS[1:]}
-    notes = {}
+    notes, loads = {}, {kind: [] for kind in KINDS}
     for round_ in range(ROUNDS):
         for kind in KINDS:
             loop = None
             if kind != "alone":
                 tmp = tempfile.TemporaryDirectory()
                 loop = HapticLoop(ScriptedDevice(LiverGrasp().grasper.trajectory()), rate=1000.0,
-                                  log_path=Path(tmp.name) / "loop.npz", realtime=kind == "realtime")
-            records, problems, end = run(overrides, loop)
+                                  log_path=Path(tmp.name) / "loop.npz", realtime=kind == "realtime",
+                                  cpu=LOOP_CORE if kind in ("pinned", "realtime") else None)
+            records, problems, end, load = run(overrides, loop, pin=kind in ("pinned", "realtime"))
             steps[kind].append(records)
+            loads[kind] += load
             if loop is None:
                 continue
             log = loop.log
@@ -150,7 +168,7 @@ def band(rows_wanted, overrides, figure=None):
             notes[kind] = {"priority": str(log["priority"]), "exit": str(log["reason"]), "cpu_seconds": cpu,
                            "wall_seconds": wall, "cpu_fraction_of_a_core": cpu / wall,
                            "torn_read_retries": before.get("torn_read_retries", 0) + int(log["retries"])}
-            if round_ == 0 and kind == "realtime":
+            if round_ == 0 and kind == "pinned":
                 first = (records, problems, log["log"], end)
     records, problems, ticks, end = first
     pressed = records[:, 3] > 0
@@ -166,10 +184,14 @@ def band(rows_wanted, overrides, figure=None):
               "loops": {kind: {**loop_stats(runs), **notes[kind]} for kind, runs in loops.items()}}
     # Step times: the steps after the first of every run of a kind, pooled; and per round.
     pooled = {kind: np.concatenate([r[1:, 1] for r in runs]) for kind, runs in steps.items()}
+    alone_rounds = [np.median(r[1:, 1]) for r in steps["alone"]]
     result["step_ms"] = {kind: {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)),
                                 "per_round_median": [float(np.median(r[1:, 1])) for r in steps[kind]],
-                                "ratio_to_alone": float(np.median(v) / np.median(pooled["alone"]))}
+                                "ratio_to_alone": float(np.median(v) / np.median(pooled["alone"])),
+                                # each round's median against the same round's run alone (minutes apart, not more)
+                                "paired_ratios": [float(np.median(r[1:, 1]) / a) for r, a in zip(steps[kind], alone_rounds)]}
                          for kind, v in pooled.items()}
+    result["load_average_1min"] = {kind: [float(x) for x in v] for kind, v in loads.items()}
     result["publish_ms_median"] = float(np.median(np.concatenate([r[1:, 2] for r in steps["normal"]])))
     if figure is not None:
         ticks = ticks[ticks[:, 0] <= end]
@@ -214,7 +236,8 @@ def main(argv=None) -> int:
                   f"{100 * lp['cpu_fraction_of_a_core']:.0f} % of a core; "
                   f"re-solve {lp['resolve_us_in_loop']['median']:.0f} µs "
                   f"(p99 {lp['resolve_us_in_loop']['p99']:.0f}), sweeps {lp['sweeps_median']:.0f}/{lp['sweeps_max']}; "
-                  f"step {st[kind]['median']:.2f} ms ({st[kind]['ratio_to_alone']:.2f}×; "
+                  f"step {st[kind]['median']:.2f} ms ({st[kind]['ratio_to_alone']:.2f}×, paired "
+                  f"{[round(x, 2) for x in st[kind]['paired_ratios']]}; "
                   f"rounds {st[kind]['per_round_median']})")
     write_results("haptics", results)
     return 0
