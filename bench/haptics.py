@@ -14,7 +14,8 @@ after each run is recorded). The loop sleeps to 60 µs before each tick and spin
 loop's achieved rate and its tick periods (median, p99, max) while the simulation ran, the
 re-solve's time inside the loop (Python included) and alone on the same problems, the restricted
 problems' size, the simulation's step time (median) without and with the loop (pooled, and each
-round against the same round's run alone), the publish's own time, and the loop's CPU time. The
+round against the same round's run alone), wall and CPU (the step's threads: the wall time adds
+the time slices other processes take), the publish's own time, and the loop's CPU time. The
 150-row band's first pinned normal-priority run gives figures/haptics_force.png: the force the
 device renders at the simulation's rate (held) and at the loop's.
 
@@ -59,8 +60,9 @@ def build(overrides):
 def run(overrides, loop=None, pin=False):
     """The scene in real time (a HapticLoop, if given, started once the scene is built: its clock
     is the scene's; with `pin`, this process on SIM_CORES while it runs); per step: (time, ms of
-    sim.step, ms of publish, rows, force (3), grip), the problems published, the clock at the end
-    and the load averages (1 min) before and after."""
+    sim.step, ms of publish, rows, force (3), grip, CPU ms of sim.step: all this process's
+    threads), the problems published, the clock at the end and the load averages (1 min) before
+    and after."""
     from tissue.haptics.loop import pin_process
 
     sim, layer = build(overrides)
@@ -80,15 +82,15 @@ def run(overrides, loop=None, pin=False):
             left = sim.time + sim.dt - clock()
             if left > 0:
                 time.sleep(left)
-            a = time.perf_counter()
+            a, cpu = time.perf_counter(), time.process_time()
             sim.step()
-            b = time.perf_counter()
+            b, cpu = time.perf_counter(), time.process_time() - cpu
             if loop is not None:
                 problems.append(loop.publish(layer.stage, k))
             c = time.perf_counter()
             rows = layer.stage.last.rows
             records.append((sim.time, 1e3 * (b - a), 1e3 * (c - b), 0 if rows is None else rows.n_rows,
-                            *instrument.coupling_force(), instrument.grip_force()))
+                            *instrument.coupling_force(), instrument.grip_force(), 1e3 * cpu))
         end = clock()
     finally:
         if loop is not None:
@@ -191,6 +193,12 @@ def band(rows_wanted, overrides, figure=None):
                                 # each round's median against the same round's run alone (minutes apart, not more)
                                 "paired_ratios": [float(np.median(r[1:, 1]) / a) for r, a in zip(steps[kind], alone_rounds)]}
                          for kind, v in pooled.items()}
+    # The step's CPU time (this process's threads): what the step costs, whoever else runs; the
+    # wall time above adds the time slices others take on this shared machine.
+    alone_cpu = [np.median(r[1:, 8]) for r in steps["alone"]]
+    result["step_cpu_ms"] = {kind: {"median": float(np.median(np.concatenate([r[1:, 8] for r in runs]))),
+                                    "paired_ratios": [float(np.median(r[1:, 8]) / a) for r, a in zip(runs, alone_cpu)]}
+                             for kind, runs in steps.items()}
     result["load_average_1min"] = {kind: [float(x) for x in v] for kind, v in loads.items()}
     result["publish_ms_median"] = float(np.median(np.concatenate([r[1:, 2] for r in steps["normal"]])))
     if figure is not None:
@@ -227,7 +235,8 @@ def main(argv=None) -> int:
         print(f"~{rows} rows (median {r['rows_median_in_contact']:.0f}, max {r['rows_max']}; restricted "
               f"{r['restricted_contacts_median']:.0f}/{r['restricted_contacts_max']} contacts); re-solve alone "
               f"{r['resolve_us_alone']['median']:.0f} µs (p99 {r['resolve_us_alone']['p99']:.0f}); step alone "
-              f"{st['alone']['median']:.2f} ms (rounds {st['alone']['per_round_median']}); publish "
+              f"{st['alone']['median']:.2f} ms (rounds {st['alone']['per_round_median']}; CPU "
+              f"{r['step_cpu_ms']['alone']['median']:.2f} ms); publish "
               f"{r['publish_ms_median']:.2f} ms")
         for kind, lp in r["loops"].items():
             print(f"    loop {lp['priority']}: {lp['rate_hz']:.0f} Hz, period median {lp['period_ms']['median']:.3f} "
@@ -238,7 +247,8 @@ def main(argv=None) -> int:
                   f"(p99 {lp['resolve_us_in_loop']['p99']:.0f}), sweeps {lp['sweeps_median']:.0f}/{lp['sweeps_max']}; "
                   f"step {st[kind]['median']:.2f} ms ({st[kind]['ratio_to_alone']:.2f}×, paired "
                   f"{[round(x, 2) for x in st[kind]['paired_ratios']]}; "
-                  f"rounds {st[kind]['per_round_median']})")
+                  f"rounds {st[kind]['per_round_median']}); step CPU {r['step_cpu_ms'][kind]['median']:.2f} ms "
+                  f"(paired {[round(x, 2) for x in r['step_cpu_ms'][kind]['paired_ratios']]})")
     write_results("haptics", results)
     return 0
 
