@@ -9,8 +9,8 @@ on the scene's path; after each step the simulation publishes the restricted pro
 priority on any core, at normal priority pinned (the loop on core 1, the simulation on core 0),
 and pinned at real-time priority (SCHED_FIFO, when allowed), the four alternated ROUNDS times
 (this shared machine's load drifts from minute to minute; the 1-minute load average before and
-after each run is recorded). In every run the instrument follows the script at simulation time,
-so that all step the same problems (see run). The loop sleeps to 60 µs before each tick and spins the rest
+after each run is recorded). In every run the instrument follows the device at the clock (see
+run). The loop sleeps to 60 µs before each tick and spins the rest
 (tissue.haptics.loop), its per-tick work bounded by the re-solve's sweep cap. Reported: the
 loop's achieved rate and its tick periods (median, p99, max) while the simulation ran, the
 re-solve's time inside the loop (Python included) and alone on the same problems, the restricted
@@ -61,10 +61,11 @@ def build(overrides):
 def run(overrides, loop=None, pin=False):
     """The scene in real time (a HapticLoop, if given, started once the scene is built: its clock
     is the scene's; with `pin`, this process on SIM_CORES while it runs). The instrument follows
-    the scene's script at the simulation's time, with the loop or without: where steps overrun
-    40 ms on this loaded machine the simulation falls behind the clock, and a device read at the
-    clock (the loop's pose) would have it step other contacts than the run alone; the loop
-    reads the same script at its clock. Per step: (time, ms of
+    the device at the clock, as a hand would move it: the loop's newest pose, or alone the script
+    read at the clock. A simulation that keeps to real time steps the same problems either way;
+    where steps overrun 40 ms (450 rows on this loaded machine) it falls behind the device and
+    steps other contacts than another run that falls behind by less (a device read at the
+    simulation's time instead leaves the loop's forces, at the clock, meaningless). Per step: (time, ms of
     sim.step, ms of publish, rows, force (3), grip, CPU ms of sim.step: all this process's
     threads), the problems published, the clock at the end and the load averages (1 min) before
     and after."""
@@ -76,10 +77,12 @@ def run(overrides, loop=None, pin=False):
     allowed = pin_process(SIM_CORES) if pin else None
     if loop is not None:
         loop.start()
-        clock = loop.clock
+        instrument.device, clock = loop.device_pose, loop.clock
     else:
         t0 = time.monotonic()
         clock = lambda: time.monotonic() - t0
+        script = instrument.device
+        instrument.device = lambda _time: script(clock())
     records, problems = [], []
     try:
         for k in range(sim.scene.steps):
