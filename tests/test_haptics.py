@@ -237,13 +237,13 @@ def test_plate_pulled_sideways_sticks_then_slides(backend):
     t, fn, ft, slip, cone, spring_n, spring_t = np.array(log).T
     assert np.all(fn[t > 0.3] > 0.99)                                  # pressed throughout (1 N)
     stick = (t > 0.405) & (t < 0.53)                                   # the pull begun
-    assert np.all(ft[stick] > 0.03) and np.all(cone[stick] < 0.99 * mu)   # measured: cone ≤ 0.42 μ... 0.84 μ
+    assert np.all(ft[stick] > 0.03) and np.all(cone[stick] < 0.99 * mu)   # measured: each contact ≤ 0.69 μ
     assert np.ptp(slip[stick]) < 1e-6                                  # carried with the top (measured 0)
     sliding = (t > 0.85) & (t < 1.38)
-    assert np.allclose(ft[sliding], mu * fn[sliding], rtol=1e-4)       # measured 1e-6
+    assert np.allclose(ft[sliding], mu * fn[sliding], rtol=1e-4)       # measured 4e-6
     assert np.all(np.diff(slip[sliding]) > 5e-5)                       # over the top, ~0.6 mm per 10 ms step
-    assert np.allclose(spring_t[sliding], mu * spring_n[sliding], rtol=0.02)   # measured 0.1 %
-    assert np.hypot(*resolved[:2]) == pytest.approx(mu * resolved[2], rel=1e-4)
+    assert np.allclose(spring_t[sliding], mu * spring_n[sliding], rtol=1e-3)   # measured 3e-5
+    assert np.hypot(*resolved[:2]) == pytest.approx(mu * resolved[2], rel=1e-4)   # measured 4e-7
 
 
 def tick_bound(stage, device, times, residual, stiffness) -> np.ndarray:
