@@ -15,7 +15,7 @@ run). The loop sleeps to 60 µs before each tick and spins the rest
 loop's achieved rate and its tick periods (median, p99, max) while the simulation ran, the
 re-solve's time inside the loop (Python included) and alone on the same problems, the restricted
 problems' size, the simulation's step time (median) without and with the loop (pooled, and each
-round against the same round's run alone), wall and CPU (the step's threads: the wall time adds
+round against the same round's run alone; the simulation on one Taichi thread), wall and CPU (the step's threads: the wall time adds
 the time slices other processes take), the publish's own time, and the loop's CPU time. The
 150-row band's first pinned normal-priority run gives figures/haptics_force.png: the force the
 device renders at the simulation's rate (held) and at the loop's.
@@ -225,7 +225,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from tissue import backend
 
-    backend.init("cpu", "f64")
+    # The simulation on one Taichi thread in every kind: pinned to one core, two threads wait for
+    # each other in turns of the scheduler (measured: a 4 s grasp stretched to 13 s at load 9).
+    backend.init("cpu", "f64", cpu_max_num_threads=1)
     info = machine()
     print_machine(info)
     # Compile the scene's kernels: the whole grasp once per band's settings (a kernel first needed
