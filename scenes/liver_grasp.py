@@ -7,19 +7,23 @@ from tissue.contact import Contact, Obstacle
 from tissue.haptics.layer import Haptics, Tool
 from tissue.scene import Render, Scene, Solver, SoftBody
 
-# The device's path (t, x, y, z, jaw opening): from beside the left lobe's tip, jaws 6 cm open
-# above and below it, in along -x, closed on the lobe, pulled 2.5 cm posterior and 2 cm down
-# (into the stomach, the right lobe toward the ribs), held, opened, withdrawn.
-TIP = (0.045, -0.012, 0.008)
+# The device's path (t, x, y, z, jaw opening): from beside the left lobe's tip (as it hangs under
+# gravity: 2.5-3 cm thick there), jaws 5 cm open above and below it, in along -x and a little down
+# (the lower jaw clear of the stomach below), closed to 2.2 cm between the jaws' axes (1.4 cm
+# between their faces) on the lobe, pulled 2.5 cm posterior and 2 cm down (the liver onto the
+# stomach, the right lobe toward the ribs), held; released: the jaws opened to 4 cm while the
+# device rises 1 cm (the lower jaw stays off the stomach), moved back up and out along +x.
+TIP = (0.038, -0.015, -0.012)
 PULL = (0.0, 0.025, -0.02)
-OPEN, CLOSED = 0.06, 0.02
+OPEN, CLOSED, RELEASED = 0.05, 0.012, 0.04
 
 
 def _path() -> tuple[float, ...]:
     x, y, z = TIP
     px, py, pz = x + PULL[0], y + PULL[1], z + PULL[2]
-    keys = [(0.0, x + 0.055, y, z, OPEN), (0.6, x, y, z, OPEN), (1.2, x, y, z, CLOSED), (2.4, px, py, pz, CLOSED),
-            (2.8, px, py, pz, CLOSED), (3.4, px, py, pz, OPEN), (4.0, px + 0.055, py, pz, OPEN)]
+    keys = [(0.0, x + 0.055, y, z + 0.01, OPEN), (0.6, x, y, z, OPEN), (1.2, x, y, z, CLOSED),
+            (2.4, px, py, pz, CLOSED), (2.8, px, py, pz, CLOSED), (3.2, px, py, pz + 0.01, RELEASED),
+            (3.6, x, y, z + 0.01, RELEASED), (4.0, x + 0.055, y, z + 0.01, RELEASED)]
     return tuple(v for key in keys for v in key)
 
 
@@ -30,11 +34,13 @@ class LiverGrasp(Scene):
     The liver and stomach of `liver_press` (co-rotational, E = 3 and 4 kPa, ν = 0.45), the same 20
     rib capsules. A grasper (two jaws, rounded bars 2.4 cm long, 8 mm thick, closing along z)
     follows a scripted device through a virtual coupling (M 5 g, B 2 N·s/m, K 300 N/m; μ 0.8 on
-    the jaws): it closes on the lobe's tip, pulls it 3.2 cm toward the stomach, holds, opens and
-    withdraws. The jaws' compliance h A_hap⁻¹ enters W as the paper's §3.6 says. The haptics
-    stage writes forces.png: the force the device renders at the simulation's rate (held between
-    40 ms steps) and at 1 kHz (the haptic loop's re-solve of each step's problem for the device's
-    pose between steps).
+    the jaws): it closes on the lobe's tip (to 4 mm between the jaws' faces), pulls it 3.2 cm
+    toward the stomach, holds, opens and withdraws. The jaws' compliance h A_hap⁻¹ enters W as the
+    paper's §3.6 says. The haptics stage writes forces.png: the force the device renders at the
+    simulation's rate (held between 40 ms steps) and at 1 kHz (the haptic loop's re-solve of each
+    step's problem for the device's pose between steps, each new step's correction blended in
+    over a step), the grip, and what the contacts did (liver on stomach and ribs, the share of
+    the jaws' contacts sliding), with the script's closing and opening shaded.
     """
 
     dt: float = 0.04

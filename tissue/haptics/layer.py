@@ -29,6 +29,7 @@ from ..options import Options, require
 from ..scene import Drawable, add_stage, rotation_matrix
 from .device import Trajectory
 from .instrument import Coupling, Instrument, grasper, probe
+from .continuity import ContinuousForce
 from .lcp import MAX_CONTACTS, MAX_SWEEPS, HapticSolver, restrict
 
 
@@ -105,18 +106,30 @@ class Haptics(Options):
         require(self.max_contacts >= 1, "max_contacts", f"must be >= 1, got {self.max_contacts}")
 
 
+STEP_COLUMNS = ("time", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "jaw_contacts", "jaw_sliding", "organ_force",
+                "obstacle_force")
+# (kx, ky, kz: the part of the force that is a step's correction still being blended in, N;
+# correction: Σ over the jaws of its size, N; tissue.haptics.continuity)
+TICK_COLUMNS = ("time", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "sweeps", "residual", "kx", "ky", "kz", "correction")
+SLIDING = 0.99           # a pressed contact slides when |λ_t| >= this × μ λ_n (Coulomb's cone, to the solver's tolerance)
+
+
 class HapticsStage:
     """After the contact stage: the device's force at the step (single rate) and at the haptic
-    rate until the next step (the loop's re-solve, in this process), and the jaws' poses."""
+    rate until the next step (the loop's re-solve, made continuous across steps, in this
+    process), the jaws' poses, and what the step's contacts were doing (STEP_COLUMNS: the
+    contacts pressing on the jaws and how many of them slide, the force between the soft bodies
+    and that on the other obstacles, N)."""
 
     name = "haptics"
 
     def __init__(self, contact_layer, settings: Haptics):
         self.stage, self.settings = contact_layer.stage, settings
         self.instruments = contact_layer.instruments
-        self.solver = HapticSolver(settings.max_contacts, settings.max_sweeps)
-        self.steps: list[tuple] = []       # (time, fx, fy, fz, grip, cx, cy, cz): the single-rate force
-        self.ticks: list[tuple] = []       # (time, fx, fy, fz, grip, cx, cy, cz, sweeps): at the haptic rate
+        self.ticks_per_step = max(1, round(settings.rate * self.stage.dt))
+        self.solver = ContinuousForce(HapticSolver(settings.max_contacts, settings.max_sweeps), settings.rate)
+        self.steps: list[tuple] = []       # STEP_COLUMNS, per step: the single-rate force
+        self.ticks: list[tuple] = []       # TICK_COLUMNS, per tick: at the haptic rate
         self.poses: dict[str, list] = {jaw.name: [] for jaw in self.stage.jaws}
         self._sweeps = 0
 
@@ -127,21 +140,42 @@ class HapticsStage:
         for jaw in stage.jaws:
             self.poses[jaw.name].append((time, jaw.R.copy(), jaw.x.copy()))
         contact = sum(jaw.impulse(stage.last.impulses) for jaw in stage.jaws) / h
-        self.steps.append((time, *instrument.coupling_force(), instrument.grip_force(), *contact))
+        self.steps.append((time, *instrument.coupling_force(), instrument.grip_force(), *contact,
+                           *self._contact_state()))
         self.solver.load(restrict(stage, sim.step_count + 1, self.settings.max_contacts))
-        ticks = max(1, round(self.settings.rate * h))
         sweeps = 0
-        for i in range(1, ticks + 1):
-            t = time + i * h / ticks
+        for i in range(1, self.ticks_per_step + 1):
+            t = time + i * h / self.ticks_per_step
             pose = instrument.device(t)
             f = self.solver.solve(pose.position, pose.orientation, pose.jaw)
-            self.ticks.append((t, *f.force, f.grip, *f.contact, f.sweeps))
+            self.ticks.append((t, *f.force, f.grip, *f.contact, f.sweeps, f.residual,
+                               *f.correction.sum(axis=0), np.linalg.norm(f.correction, axis=1).sum()))
             sweeps = max(sweeps, f.sweeps)
         self._sweeps = sweeps
 
+    def _contact_state(self) -> tuple[int, int, float, float]:
+        """(contacts pressing on the jaws, those of them sliding, |force| between soft bodies,
+        |force| on the obstacles that are not jaws) at the last step."""
+        stage, last = self.stage, self.stage.last
+        if last.rows is None or not len(last.contacts):
+            return 0, 0, 0.0, 0.0
+        c = last.contacts
+        lam = last.contact_impulses / stage.dt
+        pressed = lam[:, 0] > 0
+        on_jaw = ~c.soft & (c.other >= stage._first_jaw)
+        mu = stage._friction(c)
+        sliding = pressed & on_jaw & (np.linalg.norm(lam[:, 1:], axis=1) >= SLIDING * mu * lam[:, 0]) & (mu > 0)
+        forces = last.contact_forces
+        organs = np.linalg.norm(forces[pressed & c.soft].sum(axis=0))
+        obstacles = np.linalg.norm(forces[pressed & ~c.soft & ~on_jaw].sum(axis=0))
+        return int((pressed & on_jaw).sum()), int(sliding.sum()), float(organs), float(obstacles)
+
+    def problem_size(self) -> int:
+        return 0 if self.solver.problem is None else self.solver.problem.n
+
     def report(self) -> tuple[dict[str, float], dict[str, float]]:
         f = self.steps[-1]
-        return {}, {"haptic_sweeps": self._sweeps, "haptic_contacts": self.solver.problem.n,
+        return {}, {"haptic_sweeps": self._sweeps, "haptic_contacts": self.problem_size(),
                     "device_force": float(np.linalg.norm(f[1:4])), "grip": f[4]}
 
     def drawables(self) -> list[Drawable]:
@@ -165,41 +199,91 @@ class HapticsStage:
 
     def forces(self) -> tuple[np.ndarray, np.ndarray]:
         """(single-rate rows, haptic-rate rows) as arrays (see the attributes)."""
-        return np.array(self.steps).reshape(-1, 8), np.array(self.ticks).reshape(-1, 9)
+        return (np.array(self.steps).reshape(-1, len(STEP_COLUMNS)),
+                np.array(self.ticks).reshape(-1, len(TICK_COLUMNS)))
 
     def write_outputs(self, directory, figures: bool = True) -> list[Path]:
-        """forces.csv (both logs) and, with `figures`, forces.png (force against time, both rates)."""
+        """forces.csv (per step, STEP_COLUMNS), haptic_forces.csv (per tick, TICK_COLUMNS) and, with
+        `figures`, forces.png (force against time at both rates, and what the contacts did)."""
         directory = Path(directory)
         single, fast = self.forces()
-        csv = directory / "forces.csv"
-        rows = np.r_[np.c_[np.zeros(len(single)), single, np.zeros(len(single))], np.c_[np.ones(len(fast)), fast]]
-        np.savetxt(csv, rows, delimiter=",", header="haptic_rate,time,fx,fy,fz,grip,cx,cy,cz,sweeps")
-        if not figures:
-            return [csv]
-        png = directory / "forces.png"
-        plot_forces(single, fast, png)
-        return [csv, png]
+        written = [directory / "forces.csv", directory / "haptic_forces.csv"]
+        np.savetxt(written[0], single, delimiter=",", header=",".join(STEP_COLUMNS))
+        np.savetxt(written[1], fast, delimiter=",", header=",".join(TICK_COLUMNS))
+        if figures:
+            written.append(directory / "forces.png")
+            instrument = self.stage.instruments[0]
+            plot_forces(single, fast, written[-1], phases=jaw_phases(instrument.device))
+        return written
 
 
-def plot_forces(single: np.ndarray, fast: np.ndarray, path, title: str = "Force rendered to the device") -> None:
-    """|force| and grip against time: single rate (held between steps) and haptic rate."""
+def events(single: np.ndarray) -> dict[str, float]:
+    """When the step log (STEP_COLUMNS) shows the grasp (the grip first over 0.1 N) and the soft
+    bodies meeting after it (their contact force first over 0.1 N); NaN for what did not happen."""
+    time, grip = single[:, 0], single[:, 4]
+    out = {"grasp": np.nan, "liver meets stomach": np.nan}
+    gripping = np.flatnonzero(grip > 0.1)
+    if len(gripping):
+        out["grasp"] = float(time[gripping[0]])
+        meet = np.flatnonzero((single[:, 10] > 0.1) & (time > out["grasp"]))
+        if len(meet):
+            out["liver meets stomach"] = float(time[meet[0]])
+    return out
+
+
+def jaw_phases(trajectory) -> list[tuple[float, float, str]]:
+    """(start, end, 'closing' | 'opening') where a Trajectory's jaw opening changes."""
+    keys = getattr(trajectory, "keys", None)
+    if keys is None:
+        return []
+    return [(a[0], b[0], "closing" if b[8] < a[8] else "opening") for a, b in zip(keys, keys[1:]) if b[8] != a[8]]
+
+
+def plot_forces(single: np.ndarray, fast: np.ndarray, path, title: str = "Force rendered to the device",
+                phases=()) -> None:
+    """|force| and grip against time: single rate (held between steps) and haptic rate; with the
+    step log's contact columns (STEP_COLUMNS), a third panel of what the contacts did and the
+    events marked; `phases` (start, end, label) shaded (the jaws closing and opening)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+    detailed = single.shape[1] >= len(STEP_COLUMNS)
+    fig, axes = plt.subplots(3 if detailed else 2, 1, figsize=(8, 7.5 if detailed else 5.5), sharex=True)
     for ax, pick, label in ((axes[0], lambda a: np.linalg.norm(a[:, 1:4], axis=1), "|force| (N)"),
                             (axes[1], lambda a: a[:, 4], "grip (N)")):
         if len(single):
             ax.step(single[:, 0], pick(single), where="post", color="#c0392b", lw=1.2,
                     label="single rate (simulation step, held)")
         if len(fast):
-            ax.plot(fast[:, 0], pick(fast), color="#2471a3", lw=0.9, label="haptic rate (re-solved per tick)")
+            ax.plot(fast[:, 0], pick(fast), color="#2471a3", lw=0.9,
+                    label="haptic rate (re-solved per tick, continuous across steps)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper left", fontsize=8)
     axes[0].set_title(title)
-    axes[1].set_xlabel("time (s)")
+    if detailed and len(single):
+        ax = axes[2]
+        ax.step(single[:, 0], single[:, 10], where="post", color="#8e44ad", lw=1.1, label="liver–stomach contact force (N)")
+        ax.step(single[:, 0], single[:, 11], where="post", color="#b7950b", lw=1.1, label="force on the ribs (N)")
+        share = np.where(single[:, 8] > 0, single[:, 9] / np.maximum(single[:, 8], 1), 0.0)
+        ax.fill_between(single[:, 0], 0, share * max(1e-9, np.max(single[:, 10:12])), step="post", color="#27ae60",
+                        alpha=0.3, label="share of the jaws' contacts sliding (scaled)")
+        ax.set_ylabel("contacts")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+        for name, t in events(single).items():
+            if np.isfinite(t):
+                for a in axes:
+                    a.axvline(t, color="#555555", lw=0.8, ls="--")
+                axes[0].annotate(name, (t, axes[0].get_ylim()[1]), xytext=(3, -12), textcoords="offset points",
+                                 fontsize=8)
+    for start, end, label in phases:
+        for a in axes:
+            a.axvspan(start, end, color="#f4d03f" if label == "closing" else "#aed6f1", alpha=0.25, lw=0)
+        axes[1].annotate(f"jaws {label}", (start, axes[1].get_ylim()[0]), xytext=(3, 4), textcoords="offset points",
+                         fontsize=8)
+    axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

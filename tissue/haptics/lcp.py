@@ -189,7 +189,9 @@ RESOLVE = replayed(_resolve)
 @dataclass
 class HapticForce:
     """What one tick renders: the force on the device (the springs', N), the grip (N), the
-    contacts' force on the jaws (N), the jaws' positions, sweeps and the residual estimate (m)."""
+    contacts' force on the jaws (N), the jaws' positions, sweeps, the residual estimate (m), each
+    jaw's spring force (jaws, 3; N) and the part of each that is a blended-in correction
+    (tissue.haptics.continuity; jaws × 3, N)."""
 
     force: np.ndarray
     grip: float
@@ -197,6 +199,20 @@ class HapticForce:
     jaws: np.ndarray
     sweeps: int
     residual: float
+    springs: np.ndarray
+    correction: np.ndarray
+
+    @staticmethod
+    def of_springs(springs: np.ndarray, axes: np.ndarray, **rest) -> "HapticForce":
+        """The device's force and grip from the jaws' springs (axes: the jaws' opening axes in the world)."""
+        grip = 0.5 * float(np.einsum("ja,ja->", springs, axes))
+        return HapticForce(force=springs.sum(axis=0), grip=grip, springs=springs, **rest)
+
+    def shifted(self, offset: np.ndarray, axes: np.ndarray) -> "HapticForce":
+        """This force with `offset` (jaws, 3; N) added to the jaws' springs."""
+        return HapticForce.of_springs(self.springs + offset, axes, contact=self.contact, jaws=self.jaws,
+                                      sweeps=self.sweeps, residual=self.residual,
+                                      correction=self.correction + offset)
 
 
 class HapticSolver:
@@ -255,5 +271,5 @@ class HapticSolver:
         impulse = impulse.reshape(-1, 3)
         x = p.x + moved + p.compliance[:, None] * (impulse - self.impulse0.reshape(-1, 3))
         springs = p.stiffness[:, None] * (x - targets)
-        grip = 0.5 * float(np.einsum("ja,ja->", springs, p.axis @ np.asarray(orientation).T))
-        return HapticForce(springs.sum(axis=0), grip, impulse.sum(axis=0) / p.h, x, sweeps, residual)
+        return HapticForce.of_springs(springs, p.axis @ np.asarray(orientation).T, contact=impulse.sum(axis=0) / p.h,
+                                      jaws=x, sweeps=sweeps, residual=residual, correction=np.zeros_like(springs))

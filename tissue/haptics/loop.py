@@ -10,7 +10,8 @@ Hand-off. After each step the simulation publishes the step's restricted problem
 (tissue.haptics.lcp.restrict: W among the instrument's rows and those coupled to them, δ_free, λ, μ,
 the rows' blocks on the jaws, the jaws' state) into a SharedRecord; the loop, every tick, reads
 the device, writes its pose into a second SharedRecord (the simulation's next step reads it as
-the coupling's target), re-solves the newest problem for that pose and sends the force.
+the coupling's target), re-solves the newest problem for that pose and sends the force (a new
+step's correction blended in over a step: tissue.haptics.continuity).
 
 SharedRecord: a header (sequence, length, CRC-32) and a float64 payload in one shared-memory
 block, written under a sequence lock: the writer makes the sequence odd, writes the payload and
@@ -22,7 +23,9 @@ force.
 Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
 scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
 whatever else runs; it sleeps between ticks (spinning only the last SPIN s), so it takes a
-fraction of a core. Refused, it runs at normal priority (the log says which).
+fraction of a core. Refused, it runs at normal priority (the log says which). With `cpu=k` it
+runs on core k only (os.sched_setaffinity; pin_process puts the simulation on the others): the
+two do not take each other's time slices, though other processes still may.
 
 Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; the loop also ends
 when its parent process is gone (its parent id changes: checked every tick), and when no problem
@@ -182,6 +185,21 @@ class _Config:
     log_path: str
     max_ticks: int
     realtime: bool
+    cpu: int | None
+
+
+def pin_process(cores) -> set[int]:
+    """Run every thread of this process (Taichi's workers included) on `cores` only; returns the
+    cores it was allowed before (Linux; elsewhere nothing changes and the set of all is returned)."""
+    if not hasattr(os, "sched_setaffinity"):
+        return set(range(os.cpu_count() or 1))
+    before = os.sched_getaffinity(0)
+    for task in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(task), set(cores))
+        except (ProcessLookupError, PermissionError):      # a thread gone meanwhile
+            pass
+    return before
 
 
 def _sleep_until(deadline: float) -> None:
@@ -197,6 +215,7 @@ def _sleep_until(deadline: float) -> None:
 def _run(config: _Config, epoch, ready, stop) -> None:
     """The haptic process: see the module docstring."""
     from .. import backend
+    from .continuity import ContinuousForce
     from .lcp import HapticSolver
 
     priority = "normal"
@@ -206,9 +225,16 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             priority = "realtime (SCHED_FIFO 10)"
         except (PermissionError, AttributeError, OSError):
             priority = "normal (real-time priority refused)"
+    if config.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {config.cpu})
+            priority += f", on core {config.cpu}"
+        except (AttributeError, OSError):
+            priority += f", core {config.cpu} refused"
     backend.init("cpu", "f64", cpu_max_num_threads=1)
-    solver = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
-    solver.warm()
+    resolve = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
+    resolve.warm()
+    solver = ContinuousForce(resolve, config.rate)
     problems = SharedRecord(0, name=config.problem_channel)
     poses = SharedRecord(0, name=config.pose_channel)
     device = config.device
@@ -287,7 +313,8 @@ class HapticLoop:
 
     def __init__(self, device, rate: float = 1000.0, max_contacts: int = MAX_CONTACTS, max_sweeps: int = MAX_SWEEPS,
                  tolerance: float = TOLERANCE, log_path: str | os.PathLike | None = None,
-                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000, realtime: bool = False):
+                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000, realtime: bool = False,
+                 cpu: int | None = None):
         if not (np.isfinite(rate) and 1.0 <= rate <= 20_000.0):
             raise TissueError(f"rate: must be between 1 and 20000 Hz, got {rate!r}")
         if not (idle_timeout > 0):
@@ -295,7 +322,10 @@ class HapticLoop:
         self.device, self.rate = device, float(rate)
         self.max_contacts, self.max_sweeps, self.tolerance = int(max_contacts), int(max_sweeps), float(tolerance)
         self.log_path = None if log_path is None else str(log_path)
+        if cpu is not None and not (isinstance(cpu, int) and 0 <= cpu < (os.cpu_count() or 1)):
+            raise TissueError(f"cpu: must be a core number in 0..{(os.cpu_count() or 1) - 1}, got {cpu!r}")
         self.idle_timeout, self.max_ticks, self.realtime = float(idle_timeout), int(max_ticks), bool(realtime)
+        self.cpu = cpu
         self.process = None
         self.log = None
         self.published = 0
@@ -310,7 +340,7 @@ class HapticLoop:
         self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
         config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
                          self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks,
-                         self.realtime)
+                         self.realtime, self.cpu)
         self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
                                    name="tissue-haptics", daemon=True)
         self.process.start()
