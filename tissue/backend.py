@@ -4,8 +4,10 @@ Nothing initialises Taichi at import time. `init()` reads its arguments, else th
 (`TISSUE_ARCH` = auto|cpu|cuda|vulkan, `TISSUE_PRECISION` = f64|f32), else the defaults
 (auto arch = CUDA when present, else CPU; float64).
 
-`TISSUE_ADVANCED_OPTIMIZATION` = 1|0 turns Taichi's own IR optimisation passes on or off
-(`python -m bench.compile_options` measures what they cost at compilation and buy per step).
+Taichi's own IR optimisation passes (`advanced_optimization`) are off unless
+`TISSUE_ADVANCED_OPTIMIZATION=1`: LLVM optimises the kernels either way, and the passes cost
+about ten times the CPU time of compiling the serial step kernel while buying no faster step
+(`python -m bench.compile_options`, bench/results/compile_options.json).
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ def _resolve_arch(name: str):
 
 
 def _advanced_optimization() -> bool:
-    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "1")
+    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "0")
     if value not in ("0", "1"):
         raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected 0 or 1, got {value!r}")
     return value == "1"
