@@ -3,6 +3,11 @@
 Nothing initialises Taichi at import time. `init()` reads its arguments, else the environment
 (`TISSUE_ARCH` = auto|cpu|cuda|vulkan, `TISSUE_PRECISION` = f64|f32), else the defaults
 (auto arch = CUDA when present, else CPU; float64).
+
+Taichi's own IR optimisation passes (`advanced_optimization`) are off unless
+`TISSUE_ADVANCED_OPTIMIZATION=1`: LLVM optimises the kernels either way, and the passes cost
+about ten times the CPU time of compiling the serial step kernel while buying no faster step
+(`python -m bench.compile_options`, bench/results/compile_options.json).
 """
 
 from __future__ import annotations
@@ -44,6 +49,13 @@ def _resolve_arch(name: str):
     return {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan}[name]
 
 
+def _advanced_optimization() -> bool:
+    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "0")
+    if value not in ("0", "1"):
+        raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected 0 or 1, got {value!r}")
+    return value == "1"
+
+
 def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Backend:
     """Initialise Taichi (or keep the current initialisation if it already matches).
 
@@ -63,7 +75,7 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
     wanted = _resolve_arch(arch)
     fp = ti.f64 if precision == "f64" else ti.f32
     ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
-            log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
+            advanced_optimization=_advanced_optimization(), log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
     compilation.install()
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:
