@@ -75,6 +75,10 @@ SLOPE = 25.0                                # degrees
 SLIDE = 0.3                                 # m/s: the block's launch speed along the floor
 PRESS = (5e-3, 2.0)                         # the plate's travel (m) and the time it takes (s)
 CONTACT_DISTANCE = 2e-3                     # m
+# The implicit solve a user gets: the scenes' defaults (scenes/beam.py, liver.py, ...), each step's
+# CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations.
+CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid")
+STEP_CONTROL = "energy"
 
 
 def material_cells(young=YOUNG, poisson=POISSON, dt=STEPS, rotations=ROTATIONS) -> list[dict]:
@@ -182,22 +186,24 @@ _solvers: dict = {}
 
 
 def solver_for(cell: dict, mesh, material):
-    """An ImplicitEuler for the cell. dt, gravity, damping and CG settings are compiled into the
-    kernels, the material is not: solvers are kept per worker and re-used across cells that differ
-    only in material and state (a Taichi compile costs seconds, a cell a fraction of that)."""
+    """An ImplicitEuler for the cell, with the scenes' CG (`CG`; a cell's "cg" entry overrides it).
+    The rotation and the preconditioner are compiled into the kernels; dt, the stopping rule and
+    the material are not: solvers are kept per worker and re-used across cells (a Taichi compile
+    costs seconds, a cell a fraction of that)."""
     from tissue import backend
     from tissue.fem import CorotationalFEM
     from tissue.solver import CGSettings, ImplicitEuler
     from tissue.stats import Stats
 
-    key = (body_of(cell), cell["dt"], cell.get("rotation", "large"), cell.get("iterations", 25))
+    cg = CGSettings(**{**CG, **cell.get("cg", {})})
+    key = (body_of(cell), cell.get("rotation", "large"), cg.preconditioner)
     entry = _solvers.get(key)
     if entry is None or entry[0] is not backend.current():
-        fem = CorotationalFEM(mesh, material, rotation=key[2])
-        solver = ImplicitEuler(fem, cell["dt"], gravity=GRAVITY, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
-                               cg=CGSettings(max_iterations=key[3]))
+        fem = CorotationalFEM(mesh, material, rotation=key[1])
+        solver = ImplicitEuler(fem, cell["dt"], gravity=GRAVITY, rayleigh_mass=0.1, rayleigh_stiffness=0.1, cg=cg)
         entry = _solvers[key] = (backend.current(), solver)
     solver = entry[1]
+    solver.set_parameters(dt=cell["dt"], cg=cg)     # read at every launch: nothing recompiles
     fem = solver.fem
     fem.model.set_material(material)     # a runtime change: nothing recompiles
     solver.stats = Stats()
@@ -223,6 +229,7 @@ def simulate(cell: dict) -> dict:
     from tissue.errors import TissueError
     from tissue.fem import Material
     from tissue.mesh.tetmesh import signed_volumes
+    from tissue.solver.step_control import EnergyControl
 
     mesh = _mesh(body_of(cell))
     out = dict(cell)
@@ -236,6 +243,7 @@ def simulate(cell: dict) -> dict:
         stage = contact_stage(cell, mesh, solver)
     except TissueError as e:
         return {**out, "outcome": "refused", "message": str(e)}
+    stepper = EnergyControl(solver) if cell.get("step_control", STEP_CONTROL) == "energy" else solver
     body = Body(mesh, material, fixed)
     mass = body.lumped_mass
     g = np.asarray(GRAVITY)
@@ -255,12 +263,9 @@ def simulate(cell: dict) -> dict:
         warnings.simplefilter("always")
         try:
             for done in range(1, steps + 1):
-                solver.step()
+                stepper.step()
                 if stage is not None:
-                    r = stage.step()
-                    # Work of the obstacles on the body: each contact's force along the motion of
-                    # the obstacle's touched point (only moving obstacles do work).
-                    work += float(np.einsum("kj,kj->", r.contact_forces, r.contacts.other_motion))
+                    work += obstacle_work(stage.step())
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break
@@ -280,7 +285,7 @@ def simulate(cell: dict) -> dict:
     out.update(outcome=outcome, message=message, steps_done=done, energy_overshoot=float(overshoot),
                energy_net=float(net), kinetic_at_end=float(0.5 * mass @ (v * v).sum(1) / scale) if finite else math.nan,
                inverted_at_end=inverted, inversion_warned=warned, cg_breakdowns=breakdowns,
-               cg_residual=float(solver.stats.counters.get("cg_residual", math.nan)), seconds=time.perf_counter() - start)
+               **solve_measures(solver), seconds=time.perf_counter() - start)
     if cell["case"] == "material":
         out["self_weight_strain"] = material.density * 9.81 * LENGTH / material.young   # ρ g L / E
     if body_of(cell) == "beam":
@@ -295,6 +300,32 @@ def simulate(cell: dict) -> dict:
                    gs_iterations_max=int(max(history["gs_iterations"])), gs_residual_max=float(max(history["gs_residual"])),
                    penetration_max=float(max(history["penetration"])), obstacle_work=float(work / scale))
     return out
+
+
+def obstacle_work(result) -> float:
+    """The work the obstacles did on the body in a contact step (J): each contact's force on the
+    body along the motion of the obstacle's touched point over the step (static obstacles do none;
+    sliding friction's work relative to the obstacle is the body's loss, not the obstacle's)."""
+    return float(np.einsum("kj,kj->", result.contact_forces, result.contacts.other_motion))
+
+
+def solve_measures(solver) -> dict:
+    """How far the steps' implicit solves ended from converged: the CG's relative residual
+    ‖r‖/‖b‖ (largest, median, at the last step) and the iterations; the steps that ended above
+    the stopping rule's tolerance at the iteration cap (unconverged), and those stopped earlier by
+    the |pᵀAp| threshold (a body nearly at rest: ‖b‖ tiny); and the energy check's rejected
+    steps and the steps it kept gaining at its finest dt (tissue.solver.step_control)."""
+    history = solver.stats.history
+    residual, iterations = np.asarray(history.get("cg_residual", [])), np.asarray(history.get("cg_iterations", []))
+    if not len(residual):
+        return {}
+    above = residual > solver.cg.tolerance
+    at_cap = iterations >= solver.cg.max_iterations
+    control = {k: int(sum(history[k])) for k in ("energy_rejections", "energy_unresolved") if k in history}
+    return dict(control, cg_residual=float(residual[-1]), cg_residual_max=float(residual.max()),
+                cg_residual_median=float(np.median(residual)), cg_steps=len(residual),
+                cg_steps_at_cap=int((above & at_cap).sum()), cg_steps_threshold=int((above & ~at_cap).sum()),
+                cg_iterations_max=int(iterations.max()), cg_iterations_median=float(np.median(iterations)))
 
 
 def classify(message: str | None, finite: bool, overshoot: float, inverted: int) -> str:

@@ -195,3 +195,32 @@ def test_stvk_has_no_force_under_rigid_motion(body):
     x = body.mesh.points @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T + 3.0
     forces = internal_forces(body, "stvk", x)
     assert abs(forces).max() < 1e-9 * body.material.young * body.mesh.volumes.sum() ** (2 / 3)
+
+
+def test_obstacle_work_of_a_rising_floor(backend):
+    """The free block resting on a floor that rises at u = 1 cm/s for T = 2 s: the floor lifts it
+    by u T, so its work is m g u T + ½ m u² (the block's potential and kinetic energy gained),
+    less what the block's own settling and damping take (its sag ρ g H / E = 2 % of its 2 cm
+    height: under 1 % of the lift)."""
+    from tissue.contact import Contact
+    from tissue.contact.obstacles import Plane, RigidObstacle
+    from tissue.contact.pipeline import ContactStage
+    from tissue.fem import Material
+
+    u, dt, steps = 0.01, 0.04, 50
+    cell = dict(case="friction", mode="floor", dt=dt, rotation="polar")
+    mesh = stability._mesh("block")
+    solver = stability.solver_for(cell, mesh, Material(1e4, 0.45, 1000.0))
+    solver.set_fixed([])
+    solver.set_state(mesh.points, np.zeros_like(mesh.points))
+    floor = RigidObstacle(Plane((0.0, 0.0, 0.0)), name="floor", motion=lambda t: np.array([0.0, 0.0, u * t]))
+    stage = ContactStage([solver], [floor], Contact(friction=0.5, distance=stability.CONTACT_DISTANCE))
+    work = 0.0
+    for _ in range(steps):
+        solver.step()
+        work += stability.obstacle_work(stage.step())
+    mass = solver.model.mass.sum()
+    lift = u * dt * steps
+    rise = (solver.model.mass @ (solver.positions() - mesh.points))[2] / mass
+    assert rise == pytest.approx(lift, rel=0.05)
+    assert work == pytest.approx(mass * 9.81 * lift + 0.5 * mass * u * u, rel=0.02)
