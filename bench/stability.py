@@ -3,8 +3,10 @@
     python -m bench.stability [--quick] [--scheduler tcp://host:port] [--workers 2]
 
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
-1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, CG 25 iterations (SOFA's defaults),
-each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
+1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, the solver a user gets from the
+scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations; the energy
+check `tissue.solver.step_control`, `STEP_CONTROL`; a cell's "cg" and "step_control" entries
+override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
 end (E ≤ 1e3 Pa), the special cells and the impacts onto a floor with "invertible" (tissue.fem:
 "polar" plus a compression limit). Cells:
   material   E 1e2 … 1e8 Pa × ν 0 … 0.499 × dt 1e-3 … 0.5 s, from rest, for max(20, 1 s / dt)
@@ -40,6 +42,9 @@ Each cell ends as (`classify`)
              warned "N elements are inverted ..." is recorded with it);
   energy     finite but the energy rose past the allowance (a failure);
   silent-nan non-finite state without an error (must never happen).
+Beside the outcome each cell reports how its implicit solves ended (`solve_measures`: the CG's
+relative residual, the steps at the iteration cap above the tolerance) and the energy check's
+rejected steps.
 The energy scale is max(|E₀|, E₀ − min E, m g L) with L the body's largest extent. Writes
 bench/results/stability.json and the tables as markdown (bench/results/stability.md).
 """
