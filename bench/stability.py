@@ -59,6 +59,8 @@ import warnings
 
 import numpy as np
 
+from tissue.solver.step_control import MAX_HALVINGS
+
 from .cluster import add_arguments, client, record, run_cells, worker_backend
 
 ROTATIONS = ("large", "polar")
@@ -426,17 +428,18 @@ def matrix_markdown(results: list[dict]) -> str:
                 bad = [r for r in mine if r["young"] == E and r["poisson"] == nu and r.get("outcome") != "bounded"]
                 row.append("✓" if not bad else " ".join(f"{symbol(r)}{r['dt']:g}" for r in bad))
             lines.append(f"| {E:.0e} | {1000 * 9.81 * LENGTH / E:.2g} | " + " | ".join(row) + " |")
-        lines.append("")
+        lines += ["", solves_line(mine), ""]
     lines += [TAG, "| special cell (E 1e4, ν 0.45, dt 0.04) | rotation | outcome | inverted start → end | "
-              "energy overshoot | note |", "|---|---|---|---|---|---|"]
+              "energy overshoot | CG ‖r‖/‖b‖ max, steps at cap | rejected steps | note |", "|---|---|---|---|---|---|---|---|"]
     for r in results:
         if r["case"] != "material" and "friction" not in r:
             lines.append(f"| {r['case']} {r.get('mode', '')} | {r['rotation']} | {outcome(r)} | "
                          f"{r.get('inverted_at_start', '')} → {r.get('inverted_at_end', '')} | "
-                         f"{r.get('energy_overshoot', math.nan):.2g}× | {note(r)} |")
+                         f"{r.get('energy_overshoot', math.nan):.2g}× | {solves(r)} | {r.get('energy_rejections', '–')} | "
+                         f"{note(r)} |")
     lines += ["", TAG, "| contact cell (E 1e4, ν 0.45, dt 0.04) | μ | rotation | outcome | inverted start → end | "
               "rows (contacts) | GS its / residual (m) | penetration (mm) | energy overshoot / net / obstacle work | "
-              "travel, speed at end | note |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "travel, speed at end | CG ‖r‖/‖b‖ max, steps at cap | note |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if "friction" in r and "rows_max" in r:
             motion = (f"{r['travel']:.3g} m, {r['speed_at_end']:.2g} m/s" if "travel" in r else "–")
@@ -444,10 +447,10 @@ def matrix_markdown(results: list[dict]) -> str:
                          f"{r['inverted_at_start']} → {r['inverted_at_end']} | {r['rows_max']} ({r['contacts_max']}) | {r['gs_iterations_max']} / "
                          f"{r['gs_residual_max']:.1e} | {1e3 * r['penetration_max']:.2f} | "
                          f"{r['energy_overshoot']:.2g} / {r['energy_net']:.2g} / {r['obstacle_work']:.2g} | "
-                         f"{motion} | {note(r)} |")
+                         f"{motion} | {solves(r)} | {note(r)} |")
         elif "friction" in r:
             lines.append(f"| {r['case']} {r.get('mode', '')} | {r['friction']:g} | {r['rotation']} | {outcome(r)} | "
-                         f"– | – | – | – | – | – | {note(r)} |")
+                         f"– | – | – | – | – | – | – | {note(r)} |")
     lines += ["", f"✓ bounded at every dt; otherwise the dt (s) of each cell that was not, marked I (elements "
               "left inverted at the end; I⚠: and the solver warned about it), E (the energy rose more than "
               f"{ALLOWANCE:g} of its scale over its start plus the external work), D (diverged: an error during the "
@@ -456,6 +459,28 @@ def matrix_markdown(results: list[dict]) -> str:
               "change at the end, obstacle work: the work the moving obstacles did on the body, all in energy "
               "scales. Rows, contacts, GS iterations, residual and penetration: the largest of any step."]
     return "\n".join(lines)
+
+
+def solves(r: dict) -> str:
+    """A cell's largest CG relative residual and its steps that ended above the tolerance at the cap."""
+    if "cg_residual_max" not in r:
+        return "–"
+    return f"{r['cg_residual_max']:.1e}, {r['cg_steps_at_cap']}"
+
+
+def solves_line(cells: list[dict]) -> str:
+    """The implicit solves of a table's cells: the steps that ended above the CG tolerance at the
+    cap, the largest relative residual of the others, and the energy check's rejections."""
+    measured = [r for r in cells if "cg_steps" in r]
+    if not measured:
+        return "(no CG residuals recorded for these cells)"
+    steps = sum(r["cg_steps"] for r in measured)
+    at_cap = sum(r["cg_steps_at_cap"] for r in measured)
+    return (f"Implicit solves: {steps:,} CG solves, {at_cap:,} ended above ‖r‖/‖b‖ = {CG['tolerance']:g} at the "
+            f"{CG['max_iterations']}-iteration cap; median of the cells' median ‖r‖/‖b‖ "
+            f"{np.median([r['cg_residual_median'] for r in measured]):.1e}; the energy check rejected "
+            f"{sum(r.get('energy_rejections', 0) for r in measured):,} steps, and kept "
+            f"{sum(r.get('energy_unresolved', 0) for r in measured):,} still gaining at dt/{2 ** MAX_HALVINGS}.")
 
 
 def outcome(r: dict) -> str:
