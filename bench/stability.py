@@ -498,8 +498,12 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="a 4 × 3 × 3 material matrix instead of 7 × 5 × 5")
     parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json, "
                         "each cell's outcome classified again from its stored measures by the current definitions")
-    parser.add_argument("--only", choices=[INVERTIBLE], help="run only the cells of this rotation and replace "
-                        "them in bench/results/stability.json, keeping the others (and their run's record)")
+    parser.add_argument("--only", choices=[*ROTATIONS, INVERTIBLE], help="run only the cells of this rotation and "
+                        "replace them in bench/results/stability.json, keeping the others (and their run's record)")
+    parser.add_argument("--material-only", action="store_true", help="only the E × ν × dt cells")
+    parser.add_argument("--step-control", choices=["energy", "none"], default=STEP_CONTROL,
+                        help="'none': the ablation without the energy check, written to "
+                             "bench/results/stability_unchecked.json (stability.json is left as it is)")
     args = parser.parse_args(argv)
     from .common import RESULTS, write_results
 
@@ -518,15 +522,18 @@ def main(argv=None):
     cells += invertible_cells(**({k: QUICK[k] for k in ("poisson", "dt")} if args.quick else {}))
     if args.only:
         cells = [c for c in cells if c["rotation"] == args.only]
+    if args.material_only:
+        cells = [c for c in cells if c["case"] == "material"]
     for c in cells:
-        c["arch"] = args.arch
+        c.update(arch=args.arch, step_control=args.step_control)
+    name = "stability" if args.step_control == STEP_CONTROL else "stability_unchecked"
     from bench import stability   # by its module name, so that workers import it (and keep its cache)
 
     with client(args) as c:
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
     data = {"machine": info, "cells": results}
-    if args.only:   # the other cells and the record of the run that measured them stay
+    if args.only and name == "stability":   # the other cells and the record of the run that measured them stay
         old = json.loads((RESULTS / "stability.json").read_text())
         data = {"machine": old["machine"], f"machine_{args.only}": info,
                 "cells": [r for r in old["cells"] if r.get("rotation") != args.only] + results}
@@ -537,8 +544,8 @@ def main(argv=None):
     print("outcomes:", tally)
     table = matrix_markdown(results)
 
-    write_results("stability", data)
-    (RESULTS / "stability.md").write_text(table + "\n")
+    write_results(name, data)
+    (RESULTS / f"{name}.md").write_text(table + "\n")
     print(table)
 
 

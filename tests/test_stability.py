@@ -56,7 +56,12 @@ def test_an_error_during_the_run_is_a_divergence(backend, monkeypatch):
     assert r["outcome"] == "diverged" and "diverged" in r["message"] and r["steps_done"] == 3, r
 
 
-@pytest.mark.parametrize("rotation", ["large", "polar"])
+# "large" is not the scenes' rotation: its cells compile a step of their own (the multigrid's),
+# so they run in the slow set; the default run checks the scenes' "polar".
+LARGE = pytest.param("large", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("rotation", [LARGE, "polar"])
 def test_stiff_nearly_incompressible_huge_step_stays_bounded_or_is_refused(backend, rotation):
     r = outcome(dict(case="material", young=1e8, poisson=0.499, dt=0.5, rotation=rotation))
     assert r["outcome"] in ("bounded", "refused"), r
@@ -71,7 +76,7 @@ INVERTIBLE = pytest.param("invertible", marks=pytest.mark.slow)
 
 
 @pytest.mark.parametrize("mode", ["smooth", "abrupt"])
-@pytest.mark.parametrize("rotation", ["large", "polar", INVERTIBLE])
+@pytest.mark.parametrize("rotation", [LARGE, "polar", INVERTIBLE])
 def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
     """("large", abrupt) gains 0.11 energy scales: its edge frames of the turned end face are not
     the polar rotation (a known failure, counted in the matrix)."""
@@ -82,7 +87,7 @@ def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
 
 
 @pytest.mark.parametrize("mode", ["node", "mirror"])
-@pytest.mark.parametrize("rotation", ["large", "polar"])
+@pytest.mark.parametrize("rotation", [LARGE, "polar"])
 def test_inverted_initial_state_recovers(backend, mode, rotation):
     r = outcome(dict(case="inverted", mode=mode, dt=0.04, steps=250, rotation=rotation))
     assert r["inverted_at_start"] > 0
@@ -111,13 +116,9 @@ def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
 
 @pytest.mark.parametrize("mode, mu, slides", [("floor", 0.0, True), ("floor", 10.0, False),
                                               ("slope", 0.1, True), ("slope", 1.0, False)])
-def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides, request):
+def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides):
     """Launched along the floor at 0.3 m/s, or released on the 25° slope (tan 25° = 0.47): in 2 s
-    it slides metres where μ allows, and stops within a few millimetres where it does not. On the
-    frictionless floor it gains 0.02 energy scales (Gauss-Seidel stops at its sweep cap and the
-    penetration correction lifts it: a known failure, issue 15 item 3)."""
-    if (mode, mu) == ("floor", 0.0):
-        request.applymarker(ENERGY_GAIN)
+    it slides metres where μ allows, and stops within a few millimetres where it does not."""
     r = outcome(dict(case="friction", mode=mode, friction=mu, dt=0.04, steps=50, rotation="polar"))
     assert r["outcome"] == "bounded" and r["contacts_max"] > 0, r
     assert r["travel"] > 0.5 if slides else r["travel"] < 0.01, r
@@ -131,7 +132,7 @@ def test_slab_pressed_by_a_plate_has_over_2000_rows(backend):
 
 
 def test_gravity_from_rest_loses_energy(backend):
-    r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="large"))
+    r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="polar"))
     assert r["outcome"] == "bounded" and r["energy_net"] < 0, r
 
 
