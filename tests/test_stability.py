@@ -78,8 +78,9 @@ INVERTIBLE = pytest.param("invertible", marks=pytest.mark.slow)
 @pytest.mark.parametrize("mode", ["smooth", "abrupt"])
 @pytest.mark.parametrize("rotation", [LARGE, "polar", INVERTIBLE])
 def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
-    """("large", abrupt) gains 0.11 energy scales: its edge frames of the turned end face are not
-    the polar rotation (a known failure, counted in the matrix)."""
+    """("large", abrupt) gains 0.035 energy scales with the energy check (0.11 before it): its
+    forces are not the gradient of the polar energy, so each step gains a little under the check's
+    tolerance, and the gains add up over the run (a known failure, counted in the matrix)."""
     if (rotation, mode) == ("large", "abrupt"):
         request.applymarker(ENERGY_GAIN)
     r = outcome(dict(case="twist", mode=mode, dt=0.04, steps=150, rotation=rotation))
