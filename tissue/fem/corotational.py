@@ -41,6 +41,9 @@ ROTATIONS = ("large", "polar", "invertible", "linear")
 # V κ/2 (c − σ̂ᵢ)² with κ = COMPRESSION_STIFFNESS (λ + 2μ). Linear co-rotational energy is finite
 # at σ̂ = 0, so a load of the order of E leaves elements inverted at its minimum (the hanging
 # 240-tet cantilever at E = 1e2 Pa, ν = 0.3: 156 of 240); with this limit the minimum has none.
+# The mean of a node's element rotations is taken as singular (no polar factor) below this
+# determinant (1 for alike rotations; 0 when, e.g., I and a half turn average).
+SINGULAR_MEAN = 1e-6
 COMPRESSION_LIMIT = 0.3
 COMPRESSION_STIFFNESS = 10.0
 ACCUMULATIONS = ("gather", "atomic", "colouring")
@@ -204,14 +207,22 @@ def nodal_rotation(Re: ti.template(), valence: ti.template(), incidence: ti.temp
     """The orthonormalised average of the rotations of the elements around node v: the rotation
     of the polar decomposition of their mean X₀. Newton–Schulz, X ← X (3I - XᵀX) / 2, converges
     to it quadratically when the rotations are alike (X₀ nearly orthogonal: a few 3×3 products);
-    otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM."""
+    otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM. Where
+    the rotations cancel in the mean (a half turned over against the other: X₀ singular, and its
+    polar factor undefined) the node takes its first element's rotation; a node of no element the
+    identity."""
     X = ti.Matrix.zero(float, 3, 3)
     for k in range(valence[v]):
         X += Re[incidence[v, k] // 4]
     S = X / ti.max(valence[v], 1)
     X = S
     done = False
-    if S.determinant() > 0.0:
+    if ti.abs(S.determinant()) <= SINGULAR_MEAN:
+        X = ti.Matrix.identity(float, 3)
+        if valence[v] > 0:
+            X = Re[incidence[v, 0] // 4]
+        done = True
+    elif S.determinant() > 0.0:
         for _ in range(12):
             E = X.transpose() @ X - ti.Matrix.identity(float, 3)
             e = E.norm()

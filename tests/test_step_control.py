@@ -1,0 +1,107 @@
+"""Energy-checked steps (tissue.solver.step_control) and the elastic energy they read
+(tissue.fem.energy): the energy against the numpy reference of bench/nonlinear_reference.py, the
+accounting of gravity and applied forces against free fall in closed form, a rejected step against
+two half steps taken by hand, and the hanging soft beam that one linearisation per step drives up
+in energy and the check keeps bounded."""
+
+import numpy as np
+import pytest
+
+from bench import stability
+from bench.nonlinear_reference import Body, strain_energy
+from tissue.errors import TissueError
+from tissue.fem import Material
+from tissue.fem.energy import elastic_energy
+from tissue.fem.model import BodyModel
+from tissue.solver.step_control import EnergyControl
+
+MATERIAL = Material(1e4, 0.45, 1000.0)
+
+
+@pytest.mark.parametrize("rotation", ["polar", "invertible", "linear"])
+@pytest.mark.parametrize("amplitude", [1e-3, 3e-2])
+def test_elastic_energy_matches_the_reference(rotation, amplitude):
+    """Turned by 1 rad and perturbed, some elements inverted at the larger amplitude: the
+    strain-based energy against the reference's ½ uᵀ Kₑ u (plus the compression limit's)."""
+    mesh = stability._mesh()
+    rng = np.random.default_rng(3)
+    c, s = np.cos(1.0), np.sin(1.0)
+    x = (mesh.points + amplitude * rng.standard_normal(mesh.points.shape)) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    expected = strain_energy(Body(mesh, MATERIAL, np.zeros(0, dtype=np.int64)), rotation, x)
+    assert elastic_energy(BodyModel(mesh, MATERIAL), x, rotation) == pytest.approx(expected, rel=1e-12)
+
+
+def test_bad_settings_are_refused(backend):
+    solver = stability.solver_for(dict(dt=0.04, rotation="polar"), stability._mesh(), MATERIAL)
+    with pytest.raises(TissueError, match="tolerance"):
+        EnergyControl(solver, tolerance=-1.0)
+    with pytest.raises(TissueError, match="max_halvings"):
+        EnergyControl(solver, max_halvings=-1)
+
+
+@pytest.mark.parametrize("load", ["gravity", "applied forces"])
+def test_free_fall_energy_in_closed_form(backend, load):
+    """A free body from rest, no elastic strain: implicit Euler with mass damping α gives
+    v₁ = h a / (1 + h α) and x₁ = x₀ + h v₁, so the energy less the load's work changes by
+    m v₁ (v₁/2 − h a) < 0. The check accepts the step and measures that change (a wrong sign on
+    the load's potential would read a gain and reject it)."""
+    dt, a = 0.04, 9.81
+    mesh = stability._mesh()
+    solver = stability.solver_for(dict(dt=dt, rotation="polar", cg=dict(tolerance=1e-13)), mesh, MATERIAL)
+    solver.set_fixed([])
+    mass = solver.model.mass
+    if load == "gravity":
+        forces = None
+    else:
+        solver.set_parameters(gravity=(0.0, 0.0, 0.0))
+        forces = np.outer(mass, [0.0, 0.0, -a])
+    try:
+        solver.set_external_forces(forces)
+        solver.set_state(mesh.points, np.zeros_like(mesh.points))
+        control = EnergyControl(solver, tolerance=0.0)
+        before = sum(control.energy(mesh.points, np.zeros_like(mesh.points)))
+        control.step()
+        after = sum(control.energy(solver.positions(), solver.velocities()))
+    finally:
+        solver.set_parameters(gravity=stability.GRAVITY)
+        solver.set_external_forces(None)
+    v1 = dt * a / (1.0 + dt * 0.1)
+    expected = mass.sum() * v1 * (v1 / 2 - dt * a)
+    assert np.allclose(solver.velocities(), [0.0, 0.0, -v1], rtol=0, atol=1e-9 * v1)
+    assert after - before == pytest.approx(expected, rel=1e-6)
+    assert solver.stats.counters["energy_rejections"] == 0
+
+
+def test_a_rejected_step_is_two_half_steps(backend):
+    """The hanging soft beam's first step at dt 0.5 s gains energy: with one halving allowed the
+    check's result is the state two steps of dt/2 reach from the same start."""
+    mesh = stability._mesh()
+    cell = dict(case="material", young=1e4, poisson=0.45, dt=0.5, rotation="polar")
+    x0, v0, fixed = stability.initial_state(cell, mesh)
+    solver = stability.solver_for(cell, mesh, MATERIAL)
+    solver.set_fixed(fixed)
+    solver.set_state(x0, v0)
+    EnergyControl(solver, tolerance=0.0, max_halvings=1).step()
+    assert solver.stats.counters["energy_rejections"] == 1 and solver.dt == 0.5
+    controlled = solver.positions(), solver.velocities()
+    solver.set_state(x0, v0)
+    solver.set_parameters(dt=0.25)
+    try:
+        solver.step()
+        solver.step()
+    finally:
+        solver.set_parameters(dt=0.5)
+    assert np.allclose(controlled[0], solver.positions(), rtol=0, atol=1e-12)
+    assert np.allclose(controlled[1], solver.velocities(), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("young, dt", [(1e4, 0.5), (1e3, 0.1)])
+def test_soft_beam_at_large_steps_gains_energy_unless_checked(backend, young, dt):
+    """ρgL/E = 0.098 and 0.98: the beam swings down by order one of its length per step. Each
+    step solved to ‖r‖ ≤ 1e-3 ‖b‖, unchecked it gains more than the 1 % allowance (13 and 1.2
+    energy scales when measured); checked it stays bounded."""
+    cell = dict(case="material", young=young, poisson=0.3, dt=dt, rotation="polar")
+    unchecked = stability.simulate(dict(cell, step_control="none"))
+    assert unchecked["outcome"] == "energy" and unchecked["cg_steps_at_cap"] == 0, unchecked
+    checked = stability.simulate(cell)
+    assert checked["outcome"] == "bounded" and checked["energy_rejections"] > 0, checked

@@ -1,0 +1,47 @@
+"""The elastic energy of a body's co-rotational elements at given positions (numpy, on the host).
+
+For "polar" the linear co-rotational energy is a true potential of its forces: with R the polar
+rotation of F and ε = RᵀF − I (symmetric), an element stores V (μ ε:ε + λ/2 (tr ε)²), which is
+½ uᵀ Kₑ u for the local displacement u = Rᵀx − X. "invertible" adds its compression limit
+V κ/2 Σ min(0, σ̂ᵢ − c)² over the signed principal stretches (tissue.fem.corotational). "large"
+(edge frames) has no energy of its own, its forces are not a gradient: the polar energy is the
+one it approximates, and the one used for it here. "linear" is ε = sym(F) − I.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .corotational import COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
+from .model import BodyModel
+
+
+def deformation_gradients(model: BodyModel, x: np.ndarray) -> np.ndarray:
+    """(elements, 3, 3) F = Ds Dm⁻¹, Ds the current edge matrix (columns xᵢ − x₀)."""
+    tets = model.tets
+    Ds = np.stack([x[tets[:, i]] - x[tets[:, 0]] for i in (1, 2, 3)], axis=2)
+    return Ds @ model.Dm_inv
+
+
+def element_energies(model: BodyModel, x: np.ndarray, rotation: str) -> np.ndarray:
+    """(elements,) elastic energy of each element (J)."""
+    F = deformation_gradients(model, np.asarray(x, dtype=np.float64))
+    volume, lam, mu = model.elastic.T
+    if rotation == "linear":
+        eps = 0.5 * (F + F.transpose(0, 2, 1)) - np.eye(3)
+        return volume * (mu * (eps * eps).sum((1, 2)) + 0.5 * lam * np.trace(eps, axis1=1, axis2=2) ** 2)
+    # Signed SVD: F = U Σ̂ Vᵀ with U, V rotations (σ̂₃ < 0 in an inverted element), R = U Vᵀ and
+    # RᵀF = V Σ̂ Vᵀ: ε has the eigenvalues σ̂ᵢ − 1.
+    U, s, Vt = np.linalg.svd(F)
+    flip = np.linalg.det(U @ Vt) < 0
+    s[flip, -1] *= -1
+    e = s - 1.0
+    energy = volume * (mu * (e * e).sum(1) + 0.5 * lam * e.sum(1) ** 2)
+    if rotation == "invertible":
+        d = np.minimum(0.0, s - COMPRESSION_LIMIT)
+        energy = energy + volume * 0.5 * COMPRESSION_STIFFNESS * (lam + 2 * mu) * (d * d).sum(1)
+    return energy
+
+
+def elastic_energy(model: BodyModel, x: np.ndarray, rotation: str) -> float:
+    return float(element_energies(model, x, rotation).sum())
