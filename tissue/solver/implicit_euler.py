@@ -328,6 +328,10 @@ class ImplicitEuler:
             values[:n] = forces
         self.arrays["external"].from_numpy(values)
 
+    def external_forces(self) -> np.ndarray:
+        """The applied nodal forces (n, 3) of the next step (zeros where none were set)."""
+        return self._read(self.arrays["external"])
+
     def positions(self) -> np.ndarray:
         return self._read(self.x)
 

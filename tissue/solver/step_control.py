@@ -44,9 +44,7 @@ class EnergyControl:
         mass = model.mass
         inner = 0.5 * float(mass @ (v * v).sum(1)) + elastic_energy(model, x, solver.fem.rotation)
         potential = -float(mass @ (x @ np.asarray(solver.gravity, dtype=np.float64)))
-        external = solver._external      # the applied nodal forces (set_external_forces)
-        if len(external):
-            potential -= float((external * x[:len(external)]).sum())
+        potential -= float((solver.external_forces() * x).sum())
         return inner, potential
 
     def step(self) -> None:
