@@ -74,3 +74,30 @@ def write_results(name: str, data: dict) -> Path:
     path.write_text(json.dumps(data, indent=2))
     print(f"# wrote {path.relative_to(ROOT)}")
     return path
+
+
+def alternate_with_commit(other: str, rounds: int, measure, describe, prefix: str) -> tuple[str, dict]:
+    """`measure(checkout)` on this checkout and on commit `other` (checked out in a temporary git
+    worktree), alternately for `rounds` rounds (this one first in even rounds, the machine being
+    shared), printing `describe(result)` after each. Returns other's short hash and the results,
+    {"this": [...], "other": [...]} in round order."""
+    import tempfile
+
+    other = subprocess.run(["git", "rev-parse", "--short", other], cwd=ROOT, capture_output=True,
+                           text=True, check=True).stdout.strip()
+    runs = {"this": [], "other": []}
+    with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        worktree = Path(tmp) / "other"
+        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), other], cwd=ROOT, check=True,
+                       capture_output=True)
+        try:
+            for r in range(rounds):
+                order = (("this", ROOT), ("other", worktree))
+                for name, checkout in order if r % 2 == 0 else order[::-1]:
+                    started = time.perf_counter()
+                    runs[name].append(measure(checkout))
+                    print(f"round {r + 1} {name:>5}: {time.perf_counter() - started:5.1f} s  "
+                          + describe(runs[name][-1]), flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
+    return other, runs

@@ -24,13 +24,11 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import ROOT, machine, print_machine, write_results
+from bench.common import alternate_with_commit, machine, print_machine, write_results
 
 # Runs inside a checkout: bench/contact.py's API, common to the commits compared.
 CHILD = r"""
@@ -122,23 +120,10 @@ def main(argv=None) -> None:
     backend.init("cpu")
     info = machine()
     print_machine(info)
-    other = subprocess.run(["git", "rev-parse", "--short", args.other], cwd=ROOT, capture_output=True,
-                           text=True, check=True).stdout.strip()
-    with tempfile.TemporaryDirectory(prefix="tissue-contact-versus-") as tmp:
-        worktree = Path(tmp) / "other"
-        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), other], cwd=ROOT, check=True,
-                       capture_output=True)
-        try:
-            runs = {"this": [], "other": []}
-            for r in range(args.rounds):
-                for name, checkout in (("this", ROOT), ("other", worktree)) if r % 2 == 0 else \
-                        (("other", worktree), ("this", ROOT)):
-                    started = time.perf_counter()
-                    runs[name].append(measure(checkout))
-                    print(f"round {r + 1} {name:>5}: {time.perf_counter() - started:5.1f} s  " + "  ".join(
-                        f"{s}: {runs[name][-1][s]['ms_per_step']['total']:.2f} ms" for s in SCENES), flush=True)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
+    other, runs = alternate_with_commit(
+        args.other, args.rounds, measure,
+        lambda run: "  ".join(f"{s}: {run[s]['ms_per_step']['total']:.2f} ms" for s in SCENES),
+        "tissue-contact-versus-")
     result = {"this": summary(runs["this"]), "other": summary(runs["other"])}
     result["this_over_other"] = {scene: {"total": result["this"][scene]["ms_per_step"]["total"]
                                          / result["other"][scene]["ms_per_step"]["total"],

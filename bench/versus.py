@@ -20,13 +20,11 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import ROOT, machine, print_machine, write_results
+from bench.common import alternate_with_commit, machine, print_machine, write_results
 
 # Runs inside a checkout: the API used here is common to the commits compared.
 CHILD = r"""
@@ -70,23 +68,9 @@ def main(argv=None) -> None:
     backend.init("cpu")
     info = machine()
     print_machine(info)
-    other = subprocess.run(["git", "rev-parse", "--short", args.other], cwd=ROOT, capture_output=True,
-                           text=True, check=True).stdout.strip()
-    with tempfile.TemporaryDirectory(prefix="tissue-versus-") as tmp:
-        worktree = Path(tmp) / "other"
-        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), other], cwd=ROOT, check=True,
-                       capture_output=True)
-        try:
-            runs = {"this": [], "other": []}
-            for r in range(args.rounds):
-                for name, checkout in (("this", ROOT), ("other", worktree)) if r % 2 == 0 else \
-                        (("other", worktree), ("this", ROOT)):
-                    started = time.perf_counter()
-                    runs[name].append(measure(checkout, args.quick))
-                    print(f"round {r + 1} {name:>5}: {time.perf_counter() - started:5.1f} s  " +
-                          "  ".join(f"{row['tets']}: {row['ms']:.3f}" for row in runs[name][-1]), flush=True)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, capture_output=True)
+    other, runs = alternate_with_commit(
+        args.other, args.rounds, lambda checkout: measure(checkout, args.quick),
+        lambda run: "  ".join(f"{row['tets']}: {row['ms']:.3f}" for row in run), "tissue-versus-")
     rows = []
     for i, row in enumerate(runs["this"][0]):
         this = float(np.median([run[i]["ms"] for run in runs["this"]]))
