@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import taichi as ti
 
-from . import compilation
+from . import compilation, frontend
 from .errors import TissueError
 
 ARCHS = ("auto", "cpu", "cuda", "vulkan")
@@ -77,6 +77,7 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
     ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
             advanced_optimization=_advanced_optimization(), log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
     compilation.install()
+    frontend.install()
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:
         ti.reset()
