@@ -7,7 +7,8 @@ import sys
 import pytest
 
 CODE = ("import taichi as ti\nfrom tissue import backend\nbackend.init('cpu')\n"
-        "print('PASSES', ti.lang.impl.current_cfg().advanced_optimization)\n")
+        "print('PASSES', ti.lang.impl.current_cfg().advanced_optimization)\n"
+        "print('CACHE', ti.lang.impl.current_cfg().offline_cache_max_size_of_files == backend.OFFLINE_CACHE_BYTES)\n")
 
 
 @pytest.mark.parametrize("value, expected", [(None, "False"), ("0", "False"), ("1", "True")])
@@ -16,7 +17,7 @@ def test_advanced_optimization_follows_the_environment(value, expected):
     if value is not None:
         env["TISSUE_ADVANCED_OPTIMIZATION"] = value
     done = subprocess.run([sys.executable, "-c", CODE], env=env, capture_output=True, text=True, timeout=120)
-    assert f"PASSES {expected}" in done.stdout, done.stdout + done.stderr
+    assert f"PASSES {expected}" in done.stdout and "CACHE True" in done.stdout, done.stdout + done.stderr
 
 
 def test_a_bad_value_is_named():
