@@ -338,15 +338,20 @@ class CuttingCompliance:
             w, V = w[keep], V[:, keep]
             C_gg = self._columns(kept)
             self._add_factor(np.linalg.solve(np.eye(len(w)) + w[:, None] * (V.T @ C_gg @ V), np.diag(w)), L=V)
+            corrected = (kept, len(w))
+        else:
+            corrected = None
         gained = np.flatnonzero(new & ~old)
         if len(gained):
-            self._extend(gained, new)
+            self._extend(gained, new, corrected)
         self._set_free(new)
         if self.rank > self.fold_rank:
             self.fold()
 
-    def _extend(self, gained: np.ndarray, free: np.ndarray) -> None:
-        """Block-wise inversion for the dofs that became free, by the Schur complement."""
+    def _extend(self, gained: np.ndarray, free: np.ndarray, corrected=None) -> None:
+        """Block-wise inversion for the dofs that became free, by the Schur complement.
+        `corrected`: (the dofs gathered for the correction just applied, its rank), whose rows
+        serve here when they cover the ones needed (_corrected_columns)."""
         nodes = np.unique(gained // 3)
         codes = self.model.incidence_rows[nodes].reshape(-1)
         elements = np.unique(codes[codes >= 0] // 4)
@@ -354,8 +359,21 @@ class CuttingCompliance:
         A = self._matrix(elements, near)
         g, a = np.isin(near, gained, invert=True), np.isin(near, gained)
         E, D = A[np.ix_(g, a)], A[np.ix_(a, a)]
-        C_gg = self._columns(near[g])
+        C_gg = self._corrected_columns(near[g], *corrected) if corrected is not None and self.blas \
+            and np.isin(near[g], corrected[0]).all() else self._columns(near[g])
         self._add_factor(-np.linalg.inv(D - E.T @ C_gg @ E), L=E, units=gained)
+
+    def _corrected_columns(self, dofs: np.ndarray, gathered: np.ndarray, w: int) -> np.ndarray:
+        """As _columns(dofs) (CPU), where `dofs` are among the rows last gathered (at the sorted
+        `gathered`) and the only change since is the last factor pair, of rank w: the rows of
+        C − T Uᵀ are those rows less T[dofs] U_wᵀ, n k w multiply-adds instead of a gather's
+        n k (rank + 1) reading C (the new nodes' neighbours are among the correction's dofs)."""
+        n, r1 = self.n_dofs, self.rank
+        r0 = r1 - w
+        rows = self._rows[np.searchsorted(gathered, dofs), :n] - self._T[dofs, r0:r1] @ self._U[:n, r0:r1].T
+        self._rows[:len(dofs), :n] = rows
+        self._gathered = len(dofs)
+        return rows[:, dofs].copy()
 
     def _columns(self, dofs: np.ndarray, block: bool = True) -> np.ndarray | None:
         """Gather the current C's columns at these dofs (into self._rows); returns Gᵀ C G if
