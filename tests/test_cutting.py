@@ -319,3 +319,52 @@ def test_cutting_a_block_resting_in_contact(backend, compliance):
     assert surface == {tuple(sorted(f)) for f in solver.model.boundary_faces().tolist()}
     assert sum(r.split for r in cutter.reports) > 0
     assert result.contact_forces[:, 2].sum() == pytest.approx(weight, rel=2e-3)
+
+
+def test_contact_reads_only_the_rows_it_needs_of_the_lazy_compliance(backend):
+    """After a cut the contact stage reads A₀⁻¹ from the lazy cutting compliance without folding
+    it: the touched nodes' rows of C − T Uᵀ, gathered. The W it builds and the correction it applies
+    equal h (H R) A⁻¹ (H R)ᵀ and x += R h A⁻¹ (H R)ᵀ λ with A⁻¹ the direct inverse of the cut
+    body's rest matrix (1e-8 relative); a later step that finds the factors as they were folds them."""
+    import scipy.linalg
+    import scipy.sparse as sp
+    from test_contact import block, make_solver, on_plane
+
+    from tissue.cutting import CuttingCompliance
+    from tissue.solver.reference import rest_matrix
+
+    dt, alpha_m, alpha_k = 0.01, 1.0, 0.01
+    solver = make_solver(block(), dt=dt, rayleigh_mass=alpha_m, rayleigh_stiffness=alpha_k, cg_tolerance=1e-10)
+    stage = on_plane(solver, friction=0.5, tolerance=1e-10)
+    cutting = CuttingCompliance(solver.model, dt, alpha_m, alpha_k, fold_rank=200)
+    stage.follow_compliance(0, cutting)
+    cutter = Cutter(solver.model, solver, cutting)
+    path = CutPath(points=[[0.012, -0.07, 0.1], [0.014, 0.07, 0.1]], direction=[0, 0, -1], depth=0.2)
+    for _ in range(5):
+        solver.step()
+        stage.step()
+    assert cutter.cut(path.sweep(0.0, path.length / 3)).nodes_added > 0
+    solver.step()
+    x_free = solver.positions()
+    result = stage.step()
+    compliance = stage.compliance[0]
+    assert cutting.rank > 0 and compliance.C0 is not cutting.C        # read as rows, not folded
+
+    model = solver.model
+    n = model.n_nodes
+    A = rest_matrix(model.mesh(), solver.fem.material, dt, alpha_m, alpha_k)
+    free = np.flatnonzero(np.repeat(model.held == 0, 3))
+    inverse = np.zeros(A.shape)
+    inverse[np.ix_(free, free)] = scipy.linalg.inv(A[free][:, free].toarray())
+    HR = result.rows.body_matrix(0, n) @ sp.block_diag(list(compliance.nodal_rotations()))
+    W = dt * HR @ (HR @ inverse).T
+    assert result.rows.n_contacts > 0
+    assert np.abs(result.W - W).max() <= 1e-8 * np.abs(W).max()
+    dx = dt * (sp.block_diag(list(compliance.nodal_rotations())) @ (inverse @ (HR.T @ result.impulses)))
+    moved = (solver.positions() - x_free).reshape(-1)
+    assert np.abs(moved).max() > 0
+    assert np.abs(moved - dx).max() <= 1e-8 * np.abs(dx).max()
+
+    solver.step()
+    stage.step()                        # the factors as the last step read them: folded
+    assert cutting.rank == 0 and compliance.C0 is cutting.C

@@ -225,6 +225,7 @@ class CuttingCompliance:
         self.fold_rank = int(fold_rank)
         self.rank = 0                   # factor columns in use (lazy)
         self.folds = 0
+        self.version = 0                # counts the updates that changed C (readers keep what they read)
         m = model.n_elements
         self._count = m                 # the model's elements at its last edit
         self._tets = np.zeros((model.element_capacity, 4), dtype=np.int64)
@@ -320,6 +321,7 @@ class CuttingCompliance:
         old, new = self._free, self._free_dofs(self.capacity)
         if not self._pending and np.array_equal(old, new):
             return
+        self.version += 1
         tets = np.concatenate([t for t, _ in self._pending]) if self._pending else np.zeros((0, 4), np.int64)
         blocks = np.concatenate([b for _, b in self._pending]) if self._pending else np.zeros((0, 12, 12))
         self._pending = []
@@ -383,16 +385,25 @@ class CuttingCompliance:
             shape = (max(k, 2 * self._rows.shape[0]), self.capacity)
             self._rows = np.zeros(shape) if self.blas else ti.ndarray(ti.f64, shape)
         self._gathered = k
-        if self.blas:
-            _host_gather(self._C, self._T, self._U, self.rank, self._free, dofs, self.n_dofs, self._rows)
-            return self._rows[:k, dofs].copy() if block else None
-        if block and self._block.shape[0] < k:
+        if block and not self.blas and self._block.shape[0] < k:
             self._block = ti.ndarray(ti.f64, (max(k, 2 * self._block.shape[0]),) * 2)
+        self._gather_rows(dofs, self._rows, block)
+        if self.blas:
+            return self._rows[:k, dofs].copy() if block else None
+        return self._block.to_numpy()[:k, :k] if block else None
+
+    def _gather_rows(self, dofs: np.ndarray, out, block: bool = False) -> None:
+        """out[:k] = the rows (C symmetric: the columns) of the current C at these dofs, up to 3
+        nodes: numpy's BLAS into a numpy array, else the kernel into an ndarray (and self._block =
+        Gᵀ C G if `block`)."""
+        k = len(dofs)
+        if self.blas:
+            _host_gather(self._C, self._T, self._U, self.rank, self._free, dofs, self.n_dofs, out)
+            return
         cols = np.zeros(max(k, 1), dtype=np.int32)     # never empty: Taichi takes no empty array
         cols[:k] = dofs
-        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, self._rows, self._block,
+        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, out, self._block,
                 k if block else 0)
-        return self._block.to_numpy()[:k, :k] if block else None
 
     def _add_factor(self, X: np.ndarray, L: np.ndarray | None = None, units: np.ndarray | None = None) -> None:
         """Append U = (the gathered columns) L − I[:, units], T = U X to the factors."""
@@ -434,6 +445,14 @@ class CuttingCompliance:
         if self.blas:
             return self._rows[:len(dofs), :self.n_dofs].copy()
         return self._rows.to_numpy()[:len(dofs), :self.n_dofs]
+
+    def rows_into(self, dofs, out) -> None:
+        """These rows of the current C, without forming it, into the first len(dofs) rows of
+        `out`, a float64 ndarray (≥ len(dofs), capacity) (the contact kernels read it); its columns
+        past 3 nodes are left as they are."""
+        self.update()
+        dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
+        self._gather_rows(dofs, host_view(out) if self.blas else out)
 
     def dense(self) -> np.ndarray:
         """The whole current C (3 nodes × 3 nodes), from its rows (lazy factors kept)."""
