@@ -28,8 +28,11 @@ The three operations (gather, factor, fold) are Taichi kernels over the ndarrays
 run instead as numpy's BLAS on the same ndarrays' memory (tissue.launch.host_view), `blas=False`
 forcing the kernels (the tests check both): at 3,874 tetrahedra a fold at rank 255 took 368 ms
 in the kernel against 82 ms in one BLAS thread, a lazy update 15–25 ms against 4–15 ms (CPU time).
-The fold updates C's upper triangle a strip of rows at a time and mirrors it, so C stays exactly
-symmetric as the kernel keeps it.
+The fold updates C's upper triangle a strip of rows at a time, in place by the BLAS's dgemm
+(tissue.cutting.blas: no temporary product), and mirrors it, so C stays exactly symmetric as the
+kernel keeps it. The mirror is most of an eager fold's time (at rank 12-48 it costs about what
+the product does): a triangle-only C would halve the traffic, but every reader (the gather, W,
+the correction) reads whole rows.
 """
 
 import numpy as np
@@ -41,6 +44,7 @@ from .. import backend
 from ..errors import TissueError
 from ..fem.model import BodyModel
 from ..launch import host_view
+from .blas import subtract_product
 
 RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely folds midway
 RANK_TOLERANCE = 1e-13   # eigenvalues of a correction below this fraction of its largest: rounding
@@ -129,7 +133,7 @@ def _host_factor(rows, k, L, X, units, T, U, r0, n) -> None:
     T[:n, r0:r0 + w] = Uw @ X
 
 
-FOLD_TILE = 512      # rows of C folded per product: the temporary stays small, BLAS stays efficient
+FOLD_TILE = 512      # rows of C folded per product (the strip mirrored right after, still partly in cache)
 
 
 def _host_fold(C, T, U, rank, free, n) -> None:
@@ -137,7 +141,7 @@ def _host_fold(C, T, U, rank, free, n) -> None:
     stays exactly symmetric), then zero outside the free dofs: as _fold."""
     for i0 in range(0, n, FOLD_TILE):
         i1 = min(i0 + FOLD_TILE, n)
-        C[i0:i1, i0:n] -= T[i0:i1, :rank] @ U[i0:n, :rank].T
+        subtract_product(C[i0:i1, i0:n], T[i0:i1, :rank], U[i0:n, :rank])     # in place, no temporary
         _mirror_upper(C[i0:i1, i0:i1])
         C[i1:n, i0:i1] = C[i0:i1, i1:n].T
     fixed = np.flatnonzero(~free[:n])
