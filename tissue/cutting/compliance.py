@@ -117,7 +117,7 @@ def _host_gather(C, T, U, rank, free, cols, n, out) -> None:
     k = len(cols)
     out[:k, :n] = C[cols, :n]
     if rank:
-        out[:k, :n] -= U[cols, :rank] @ T[:n, :rank].T
+        subtract_product(out[:k, :n], U[cols, :rank], T[:n, :rank])
     out[:k, :n] *= free[:n]
     out[:k][~free[cols]] = 0.0
 
