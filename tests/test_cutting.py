@@ -111,6 +111,13 @@ def test_vectorised_queries_match_numpy():
     want = np.flatnonzero((corners.min(axis=1) <= hi).all(axis=1) & (corners.max(axis=1) >= lo).all(axis=1))
     np.testing.assert_array_equal(_boxes_meeting(x, tets, lo, hi), want)
     assert 0 < len(want) < len(tets)
+    surface = CutSurface()
+    surface.add(rng.uniform(-1, 1, size=(60, 1, 3)) + rng.uniform(-0.1, 0.1, size=(60, 3, 3)))
+    points = rng.uniform(-1.2, 1.2, size=(300, 3))
+    everywhere = surface.distances(points)
+    for reach in (0.0, 0.05, 0.2, 5.0):          # the triangles near the points, else all: the same answer
+        for got, want in zip(surface.distances_near(points, reach), everywhere):
+            np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("states", [(1, -1, -1, -1), (1, 1, -1, -1), (1, -1, 0, 0), (1, 1, -1, 0), (-1, 1, 0, 1)])
