@@ -328,11 +328,13 @@ def test_cutting_a_block_resting_in_contact(backend, compliance):
     assert result.contact_forces[:, 2].sum() == pytest.approx(weight, rel=2e-3)
 
 
-def test_contact_reads_only_the_rows_it_needs_of_the_lazy_compliance(backend):
+@pytest.mark.parametrize("blas", [None, False])
+def test_contact_reads_only_the_rows_it_needs_of_the_lazy_compliance(backend, blas):
     """After a cut the contact stage reads A₀⁻¹ from the lazy cutting compliance without folding
     it: the touched nodes' rows of C − T Uᵀ, gathered. The W it builds and the correction it applies
     equal h (H R) A⁻¹ (H R)ᵀ and x += R h A⁻¹ (H R)ᵀ λ with A⁻¹ the direct inverse of the cut
-    body's rest matrix (1e-8 relative); a later step that finds the factors as they were folds them."""
+    body's rest matrix (1e-8 relative); a later step that finds the factors as they were folds them.
+    blas False: the gather in the kernel (other archs), into the contact's ndarray."""
     import scipy.linalg
     import scipy.sparse as sp
     from test_contact import block, make_solver, on_plane
@@ -343,7 +345,7 @@ def test_contact_reads_only_the_rows_it_needs_of_the_lazy_compliance(backend):
     dt, alpha_m, alpha_k = 0.01, 1.0, 0.01
     solver = make_solver(block(), dt=dt, rayleigh_mass=alpha_m, rayleigh_stiffness=alpha_k, cg_tolerance=1e-10)
     stage = on_plane(solver, friction=0.5, tolerance=1e-10)
-    cutting = CuttingCompliance(solver.model, dt, alpha_m, alpha_k, fold_rank=200)
+    cutting = CuttingCompliance(solver.model, dt, alpha_m, alpha_k, fold_rank=200, blas=blas)
     stage.follow_compliance(0, cutting)
     cutter = Cutter(solver.model, solver, cutting)
     path = CutPath(points=[[0.012, -0.07, 0.1], [0.014, 0.07, 0.1]], direction=[0, 0, -1], depth=0.2)

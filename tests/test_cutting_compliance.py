@@ -134,3 +134,4 @@ def test_subtract_product_in_place_matches_numpy():
         subtract_product(C[:4, :5], T[:3, :2], U[:5, :2])
     with pytest.raises(ValueError, match="contiguous rows"):
         subtract_product(C[:4, :5], T[:4, :2], np.asfortranarray(U[:5, :2]))
+
