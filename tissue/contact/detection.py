@@ -25,7 +25,14 @@ g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
 
 All of this for one body is ONE kernel launch (`_detect`, writing into a buffer kept between
 calls), which can also copy the body's positions and start-of-step positions for the constraints.
-Detection reads the positions after the free motion. Results come back as numpy arrays, sorted by
+Detection reads the positions after the free motion. Against rigid obstacles a contact point is
+also a contact when it was within the alarm distance at the step's start (given the velocities:
+start = free − h v), by the gap at the free position less the free motion along the normal,
+g − n·(p − p₀): the free motion ignores contacts, so a body resting on a floor falls g h² in it
+(15.7 mm at h = 0.04 s), and a plate resting on its top would be that far away at the free
+positions, out of any alarm distance, and pass through it unseen. The row is still linearised at
+the free position (its gap there, positive), so it pushes only where the correction would bring
+the point back past the obstacle. Soft–soft contacts are found at the free positions only. Results come back as numpy arrays, sorted by
 (body, sample, kind, other), so runs are deterministic.
 """
 
@@ -271,17 +278,22 @@ def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
             p = R.transpose() @ (_sample(xa, nodes, weights, s) - t)
+            moved = R.transpose() @ (h * _sample(va, nodes, weights, s))     # the free motion (0 without v)
+            reach = alarm + moved.norm()
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounding balls (radius < 0: unbounded, a plane): a primitive whose ball is farther
-            # than `alarm` cannot be within it, so it is skipped (the obstacle's ball: all of them).
-            if _near(bounds, o, p, alarm):
+            # than `reach` cannot be within it, so it is skipped (the obstacle's ball: all of them).
+            if _near(bounds, o, p, reach):
                 for k in range(prm_offsets[o], prm_offsets[o + 1]):
-                    if _near(prm_bounds, k, p, alarm):
+                    if _near(prm_bounds, k, p, reach):
                         r = _closest_primitive(prm, k, p)
                         if r[0] < best[0]:
                             best = r
-            out[s, o, 0] = best[0]
-            if best[0] <= alarm:                    # the host reads the rest of hits only
+            # Within `alarm` at the free position, or at the step's start (the gap less the free
+            # motion along the normal): see the module docstring.
+            start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
+            out[s, o, 0] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
+            if out[s, o, 0] < 1e300:                # the host reads the rest of hits only
                 n = R @ ti.Vector([best[1], best[2], best[3]])
                 c = R @ ti.Vector([best[4], best[5], best[6]]) + t
                 for i in ti.static(range(3)):
@@ -535,8 +547,8 @@ class Detector:
             out = self._run(a, x, fields_, others, alarm, packed, v, dt)
             for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
                 if obstacle.meshes:
-                    self._mesh(a, x, o, obstacle, poses[o], out)
-            parts.append(self._contacts(a, out, others, alarm, poses, previous_poses))
+                    self._mesh(a, x, o, obstacle, poses[o], out, alarm, v is not None)
+            parts.append(self._contacts(a, out, others, poses, previous_poses))
         return Contacts.join(parts)
 
     def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> np.ndarray:
@@ -570,21 +582,28 @@ class Detector:
                 ids = self.storage.get(b, needed, ti.i32)      # grow and redo (rare)
         return out
 
-    def _mesh(self, a, x, o, obstacle, pose, out) -> None:
+    def _mesh(self, a, x, o, obstacle, pose, out, alarm, moving) -> None:
+        """Hits on a triangle-mesh obstacle (open3d), by the kernel's rule for primitives: within
+        `alarm` at the free position or at the step's start (`moving`: self.state holds it)."""
         nodes, weights = self.samples[a]
         R, t = pose
-        local = (np.einsum("sj,sji->si", weights, x.to_numpy()[nodes]) - t) @ R
+        points = np.einsum("sj,sji->si", weights, x.to_numpy()[nodes])
+        local = (points - t) @ R
         g, n, c = obstacle.mesh_closest(local)
+        start_gap = g
+        if moving:
+            start = self.state[a][:, 3:]
+            start_gap = g - np.einsum("si,si->s", n @ R.T, points - np.einsum("sj,sji->si", weights, start[nodes]))
         res = out[:-1, o]
-        better = g < res[:, 0]
+        better = (np.minimum(g, start_gap) <= alarm) & (g < res[:, 0])
         res[better, :7] = np.column_stack([g, n @ R.T, c @ R.T + t])[better]
         res[better, 7:10], res[better, 10] = 0.0, -1.0
 
-    def _contacts(self, a, out, others, alarm, poses, previous_poses) -> "Contacts":
+    def _contacts(self, a, out, others, poses, previous_poses) -> "Contacts":
         """The buffer's hits as Contacts, ordered by (sample, kind, other) (np.nonzero's order)."""
         no = len(self.obstacles)
         nodes, weights = self.samples[a]
-        s, slot = np.nonzero(out[:-1, :, 0] <= alarm)
+        s, slot = np.nonzero(out[:-1, :, 0] < 1e299)        # (none: 1e300, or inf in float32)
         res = out[s, slot].astype(np.float64)
         k = len(s)
         soft = slot >= no
