@@ -21,8 +21,8 @@ the 1 + keeps it defined for q = 0.)
 
 Methods:
   * "auto" (the contact stage's default): Gauss-Seidel below over the whole problem while it
-    makes progress (every AUTO_PHASE sweeps at least halve the residual, at most AUTO_SWEEPS,
-    one launch), then "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
+    makes progress (every AUTO_PHASE sweeps at least halve the residual, at a rate that reaches
+    the tolerance within AUTO_SWEEPS, one launch), then "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
     sweeps, at microseconds each; the rest (many strongly coupled contacts, more rows than the
     dofs they move: the press plate's 2,166 rows, where a sweep gains ~1 % of the residual) end in
     a few Newton steps (bench/contact_solvers.py).
@@ -88,8 +88,8 @@ JACOBI_CHECK_EVERY = 10   # Jacobi reads its residual back (a device sync) every
 JACOBI_STALL_CHECKS = 20  # ... and halves omega after this many checks without a new best residual
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
 AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE sweeps halve the residual, at
-                                  # most AUTO_SWEEPS, then Newton
-NEWTON_DENSE_ROWS = 3000  # Newton forms a factored W as an array up to this many rows (72 MB)
+                                  # a rate that reaches the tolerance within AUTO_SWEEPS, then Newton
+NEWTON_DENSE_ROWS = 4096  # Newton forms a factored W as an array up to this many rows (134 MB)
 REVISIT_EVERY = 8         # Gauss-Seidel: every this many sweeps, one that visits the contacts apart too
 
 
@@ -178,17 +178,6 @@ class FactoredDelassus:
         """The contact of each block."""
         return np.repeat(np.arange(self.n), np.diff(self.ptr))
 
-    def _P(self) -> sp.csr_matrix:
-        rows = self._block_rows()
-        r = np.broadcast_to((3 * rows)[:, None, None] + np.arange(3)[:, None], self.blocks.shape)
-        c = np.broadcast_to(np.asarray(self.col)[:, None, None] + np.arange(3), self.blocks.shape)
-        return sp.csr_matrix((self.blocks.ravel(), (r.ravel(), c.ravel())), shape=(3 * self.n, self.y_offset[-1]))
-
-    def _Q(self) -> sp.csr_matrix:
-        d = np.diff(self.y_offset)
-        return sp.block_diag([self.Q[o:o + k * k].reshape(k, k) for o, k in zip(self.q_offset, d)] or
-                             [np.zeros((0, 0))], format="csr")
-
     def __matmul__(self, r):
         """W r from the factors: z = Pᵀ r (the blocks of contacts with r ≠ 0), y = Q z per
         segment (the columns of Q where z ≠ 0), then P y."""
@@ -231,9 +220,10 @@ class FactoredDelassus:
         return self.scale * W
 
     def toarray(self) -> np.ndarray:
-        """W as a dense matrix (numpy, from the factors: for checks and for callers that need W)."""
-        P = self._P()
-        return self.scale * (P @ (self._Q() @ P.T.toarray()))
+        """W as a dense matrix (numpy, from the factors: for checks and for callers that need W),
+        as P (P Q)ᵀ with P sparse: O(n d) per segment, where Q Pᵀ formed dense costs O(d² n)
+        (3,465 rows: seconds)."""
+        return self.restricted(np.arange(self.n))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -594,7 +584,8 @@ def _gauss_seidel(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndar
                   gram: ti.types.ndarray(), window: ti.i32, restarts: ti.i32, max_it: ti.i32, tol2: float,
                   scale: float, revisit: ti.i32, stall: ti.i32, stats: ti.types.ndarray()):
     """Sweeps until the residual is ≤ tol2 (squared) or max_it sweeps; with stall > 0 also when
-    `stall` sweeps did not halve the residual (stats[2] = 1: stalled), read every `stall` sweeps."""
+    `stall` sweeps did not halve the residual, or would not reach tol2 within max_it at the rate
+    of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps."""
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, restarts if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
     n = mu.shape[0]
@@ -606,7 +597,10 @@ def _gauss_seidel(layout: ti.template(), a: ti.types.ndarray(), b: ti.types.ndar
             if err2 <= tol2 or it >= max_it:
                 break
             if at_phase:
-                if it > 0 and err2 > 0.25 * phase_err2:
+                # Stalled: these sweeps did not halve the residual, or at their rate the cap
+                # comes before the tolerance (then the sweeps to it are spent for nothing).
+                if it > 0 and (err2 > 0.25 * phase_err2 or
+                               err2 * ti.pow(err2 / phase_err2, (max_it - it) / stall) > tol2):
                     stalled = 1
                     break
                 phase_err2 = err2
@@ -892,7 +886,8 @@ class FrictionalContactSolver:
     def _sweeps(self, max_iterations, tol_abs, stall: int = 0) -> int:
         """Gauss-Seidel sweeps over the whole problem from the current r, in one launch (0 sweeps:
         u and the residual of r alone); with `stall`, stopped early when that many sweeps did
-        not halve the residual (self._stalled)."""
+        not halve the residual or, at their rate, would not reach tol_abs within max_iterations
+        (self._stalled)."""
         _gauss_seidel(self.layout, *self._abc, self._Wd, self._q, self._mu, self._r, self._u, self._y, self._z,
                       self._hist, self._gram, self.anderson, ANDERSON_RESTARTS, max_iterations, tol_abs ** 2,
                       self._scale, REVISIT_EVERY, stall, self._stats)
@@ -946,8 +941,8 @@ class FrictionalContactSolver:
 
     def _auto(self, max_iterations, tol_abs):
         """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
-        sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps at least halve the residual, up to
-        AUTO_SWEEPS sweeps, in one launch; then Newton from where it stopped (the problems whose
+        sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps at least halve the residual, at
+        a rate that reaches the tolerance within AUTO_SWEEPS sweeps, in one launch; then Newton from where it stopped (the problems whose
         sweeps crawl: many coupled contacts, W ill-conditioned or singular)."""
         its = self._sweeps(min(AUTO_SWEEPS, max_iterations), tol_abs, AUTO_PHASE)
         if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:

@@ -88,11 +88,21 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
     return phi, A, B
 
 
-def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0):
+class _Shared:
+    """What consecutive Newton steps of one solve share: W among the closing contacts, formed
+    once while they stay the same (on the press plate's 2,166 closing rows a slice of W costs
+    a third of the LU; the line search rarely changes which contacts close)."""
+
+    def __init__(self):
+        self.closing, self.Waa = None, None
+
+
+def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None):
     """dr solving (A + B W) dr = -Φ: dr_i = -Φ_i (= -r_i) for the separating contacts, then the
     closing ones from the dense system among them (LAPACK's LU; see _lu_solve). W: the array, or
     anything with W @ r; W_block(rows, cols): W's (3|rows|, 3|cols|) block between contacts
-    `rows` and `cols` (ids)."""
+    `rows` and `cols` (ids); shared: a _Shared kept between the steps of one solve."""
+    shared = _Shared() if shared is None else shared
     dr = -phi.copy()
     act = np.flatnonzero(closing)
     if not len(act):
@@ -102,7 +112,10 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0):
     carry = np.flatnonzero(~closing & (r != 0).any(axis=1))      # separating, still pushing: dr = -r
     if len(carry):
         rhs -= np.matmul(B[act], (W_block(act, carry) @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
-    Waa = W if a == len(phi) and isinstance(W, np.ndarray) else W_block(act, act)   # (all closing: no copy)
+    if shared.closing is None or not np.array_equal(shared.closing, act):
+        all_closing = a == len(phi) and isinstance(W, np.ndarray)                  # (no copy)
+        shared.closing, shared.Waa = act, W if all_closing else W_block(act, act)
+    Waa = shared.Waa
     J = np.matmul(B[act], Waa.reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
     J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
@@ -136,7 +149,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
     n = len(mu)
     rho = _rho(diagonal_blocks)
     r = np.asarray(r0, dtype=np.float64).reshape(n, 3).copy()
-    its, boost = 0, 1.0
+    its, boost, shared = 0, 1.0, _Shared()
     while True:
         u = (W @ r.ravel() + q).reshape(n, 3)          # afresh: the stopping rule reads the exact u
         err2 = error2(r.ravel(), u.ravel())
@@ -144,7 +157,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
             return r.ravel(), u.ravel(), its, err2
         phi, A, B = _alart_curnier(r, u, mu, rho)
         merit = 0.5 * np.sum(phi * phi)
-        dr = newton_step(W, W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost)
+        dr = newton_step(W, W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost, shared)
         du = (W @ dr.ravel()).reshape(n, 3)
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
