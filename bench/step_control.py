@@ -1,56 +1,82 @@
-"""What the energy check (tissue.solver.step_control, the scenes' default) costs per step: the liver
-demo (bench.deformation's meshes and SOFA's settings: dt 0.02 s, E 3000 Pa, ν 0.3, Rayleigh
-0.1/0.1, "polar") with the scenes' CG (multigrid to ‖r‖/‖b‖ ≤ 1e-3, at most 100 iterations),
-stepped with and without the check alternately, `--rounds` rounds of `steps_for(m)` steps each from
-the same hanging start, medians of all samples (warm-up excluded, ti.sync() around each step).
-Where no step is rejected (the typical case; `rejections` counts the timed steps') the check costs
-its energy evaluation: positions and velocities read back and a signed SVD per element.
+"""What the energy check (tissue.solver.step_control, the scenes' default `solver.step_control=energy`)
+costs per step on the scenes `beam`, `liver` and `liver_press`: each scene built twice, with the
+check and without it (`solver.step_control=none`), the two stepped alternately, `--steps` steps each
+per round for `--rounds` rounds, continuing their runs (which goes first alternates between rounds;
+the first step of each, which compiles, is left out). Per setting: the median wall ms of the whole
+step (every stage, ti.sync() at each stage's end) and of the free motion (where the check runs),
+the process's CPU ms per step (its blocks of steps, median; on this shared machine the steadier
+figure), and the steps the check rejected (each redone as two half steps). Where it rejects none
+(the typical case) the check costs its energy evaluation: positions and velocities read back and a
+signed SVD per element.
 
-    python -m bench.step_control [--rounds 3]
+    python -m bench.step_control [--rounds 5] [--steps 10] [--scenes beam liver liver_press]
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 
-from bench.common import machine, print_machine, time_steps, write_results
-from bench.deformation import make_solver, meshes, steps_for
+from bench.common import machine, print_machine, write_results
 
-SCENE_CG = dict(preconditioner="multigrid", tolerance=1e-3, iterations=100)
+SCENES = ("beam", "liver", "liver_press")
+SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_control=energy"]}
+
+
+def build(name: str, overrides: list[str]):
+    import scenes
+    from tissue.options import validate
+    from tissue.scene import Simulation
+
+    return Simulation(validate(scenes.load(name)().with_overrides(overrides)), arch="cpu")
+
+
+def measure(name: str, rounds: int, steps: int) -> dict:
+    sims = {k: build(name, overrides) for k, overrides in SETTINGS.items()}
+    for sim in sims.values():
+        sim.step()                                   # compiles: left out below
+    cpu = {k: [] for k in sims}
+    for r in range(rounds):
+        for k in (list(sims) if r % 2 == 0 else list(sims)[::-1]):
+            start = time.process_time()
+            for _ in range(steps):
+                sims[k].step()
+            cpu[k].append(1e3 * (time.process_time() - start) / steps)
+    row = {"scene": name, "steps": rounds * steps}
+    for k, sim in sims.items():
+        times = {s: 1e3 * np.array(t[1:]) for s, t in sim.stats.times.items() if ": " not in s}
+        row[k] = {"ms_per_step": float(np.median(sum(times.values()))),
+                  "free_motion_ms": float(np.median(times["free_motion"])),
+                  "cpu_ms_per_step": float(np.median(cpu[k])),
+                  "rejections": int(np.sum(sim.stats.history.get("energy_rejections", [])))}
+    row["ratio_wall"] = row["energy"]["ms_per_step"] / row["none"]["ms_per_step"]
+    row["ratio_cpu"] = row["energy"]["cpu_ms_per_step"] / row["none"]["cpu_ms_per_step"]
+    return row
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--arch", default="cpu")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     args = parser.parse_args(argv)
     from tissue import backend
-    from tissue.solver.step_control import EnergyControl
 
-    backend.init(arch=args.arch, precision="f64")
+    backend.init(arch="cpu", precision="f64")
     info = machine()
     print_machine(info)
     rows = []
-    for label, mesh, fixed, gravity, _ in meshes(quick=True):
-        solver = make_solver(mesh, fixed, gravity, rotation="polar", **SCENE_CG)
-        control = EnergyControl(solver)
-        steppers = {"none": solver.step, "energy": control.step}
-        samples = {k: [] for k in steppers}
-        for _ in range(args.rounds):
-            for kind, step in steppers.items():
-                solver.set_state(mesh.points, np.zeros_like(mesh.points))
-                solver.stats.history.clear()
-                samples[kind].append(time_steps(step, steps_for(mesh.n_tets))["median_ms"])
-        rejections = int(sum(solver.stats.history.get("energy_rejections", [])))
-        row = {"mesh": label, "tets": mesh.n_tets, "rejections": rejections,
-               **{f"{k}_ms": float(np.median(v)) for k, v in samples.items()}}
-        row["ratio"] = row["energy_ms"] / row["none_ms"]
+    for name in args.scenes:
+        row = measure(name, args.rounds, args.steps)
         rows.append(row)
-        print(f"{label:>18}: unchecked {row['none_ms']:.3f} ms, checked {row['energy_ms']:.3f} ms "
-              f"({row['ratio']:.2f}×; {rejections} steps rejected in the last round)", flush=True)
-    write_results("step_control", {"machine": info, "rounds": args.rounds, "cg": SCENE_CG, "rows": rows})
+        none, energy = row["none"], row["energy"]
+        print(f"{name:>12}: step {none['ms_per_step']:.2f} → {energy['ms_per_step']:.2f} ms wall ({row['ratio_wall']:.2f}×; "
+              f"free motion {none['free_motion_ms']:.2f} → {energy['free_motion_ms']:.2f}), CPU {none['cpu_ms_per_step']:.2f} → "
+              f"{energy['cpu_ms_per_step']:.2f} ms ({row['ratio_cpu']:.2f}×); {energy['rejections']} of {row['steps']} "
+              f"steps rejected", flush=True)
+    write_results("step_control", {"machine": info, "rounds": args.rounds, "steps_per_round": args.steps, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -89,7 +89,6 @@ JACOBI_STALL_CHECKS = 20  # ... and halves omega after this many checks without 
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
 AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE sweeps halve the residual, at
                                   # a rate that reaches the tolerance within AUTO_SWEEPS, then Newton
-NEWTON_DENSE_ROWS = 4096  # Newton forms a factored W as an array up to this many rows (134 MB)
 REVISIT_EVERY = 8         # Gauss-Seidel: every this many sweeps, one that visits the contacts apart too
 
 
@@ -180,7 +179,7 @@ class FactoredDelassus:
 
     def __matmul__(self, r):
         """W r from the factors: z = Pᵀ r (the blocks of contacts with r ≠ 0), y = Q z per
-        segment (the columns of Q where z ≠ 0), then P y."""
+        segment, then P y."""
         R = np.asarray(r, dtype=np.float64).reshape(-1, 3)
         row = self._block_rows()
         dofs = self.col[:, None] + np.arange(3)
@@ -189,41 +188,51 @@ class FactoredDelassus:
                         minlength=self.y_offset[-1])
         y = np.zeros_like(z)
         for s, (y0, y1) in enumerate(zip(self.y_offset[:-1], self.y_offset[1:])):
-            on = np.flatnonzero(z[y0:y1])
-            d = y1 - y0
-            Q = self.Q[self.q_offset[s]:self.q_offset[s] + d * d].reshape(d, d)
-            y[y0:y1] = Q[:, on] @ z[y0 + on]
+            y[y0:y1] = self._segment_Q(s) @ z[y0:y1]
         u = np.einsum("eab,eb->ea", self.blocks, y[dofs])
         return self.scale * np.bincount((3 * row[:, None] + np.arange(3)).ravel(), u.ravel(), minlength=3 * self.n)
 
-    def restricted(self, contacts) -> np.ndarray:
-        """W among `contacts` (ids) as a dense (3k, 3k) array: their blocks of P times Q among
-        the dofs those blocks touch, per segment (a few of a body's nodes, not all its touched ones)."""
+    def _segment_Q(self, s: int) -> np.ndarray:
+        d = self.y_offset[s + 1] - self.y_offset[s]
+        return self.Q[self.q_offset[s]:self.q_offset[s] + d * d].reshape(d, d)
+
+    def _P(self, contacts):
+        """The blocks of P of `contacts` (ids) in segment s, per segment: {s: (P sparse (3k ×
+        3|nodes|), nodes: the block columns used, P's columns in order)}."""
         contacts = np.asarray(contacts, dtype=np.int64)
-        k = len(contacts)
         counts = self.ptr[contacts + 1] - self.ptr[contacts]
         e = np.repeat(self.ptr[contacts] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(counts.sum())
-        row, col, seg = np.repeat(np.arange(k), counts), self.col[e], self.segment[e]
-        W = np.zeros((3 * k, 3 * k))
+        row, col, seg = np.repeat(np.arange(len(contacts)), counts), self.col[e], self.segment[e]
+        out = {}
         for s in np.unique(seg):
             on = seg == s
-            nodes, at = np.unique(col[on], return_inverse=True)          # block columns used
-            # P sparse (a contact's blocks touch a few nodes): P Q Pᵀ costs nnz(P) × |nodes|, not k × |nodes|².
+            nodes, at = np.unique(col[on], return_inverse=True)
             ii = np.broadcast_to((3 * row[on])[:, None, None] + np.arange(3)[:, None], (on.sum(), 3, 3))
             jj = np.broadcast_to((3 * at)[:, None, None] + np.arange(3), (on.sum(), 3, 3))
-            P = sp.csr_matrix((self.blocks[e[on]].ravel(), (ii.ravel(), jj.ravel())), shape=(3 * k, 3 * len(nodes)))
-            y0, d = self.y_offset[s], self.y_offset[s + 1] - self.y_offset[s]
-            dofs = (nodes[:, None] - y0 + np.arange(3)).ravel()
-            Q = self.Q[self.q_offset[s]:self.q_offset[s] + d * d].reshape(d, d)[np.ix_(dofs, dofs)]
-            PQ = P @ Q
-            W += (P @ PQ.T).T
+            out[s] = (sp.csr_matrix((self.blocks[e[on]].ravel(), (ii.ravel(), jj.ravel())),
+                                    shape=(3 * len(contacts), 3 * len(nodes))), nodes)
+        return out
+
+    def block(self, rows, cols) -> np.ndarray:
+        """W between contacts `rows` and `cols` (ids) as a dense (3|rows|, 3|cols|) array: per
+        segment P_rows Q P_colsᵀ with P sparse (a contact's blocks touch a few nodes) and Q among
+        the nodes those blocks touch: O(nnz(P) × nodes), not O(|rows| × nodes²)."""
+        Pr, Pc = self._P(rows), self._P(cols)
+        W = np.zeros((3 * len(rows), 3 * len(cols)))
+        for s in set(Pr) & set(Pc):
+            (P, a), (R, b) = Pr[s], Pc[s]
+            y0 = self.y_offset[s]
+            Q = self._segment_Q(s)[np.ix_((a[:, None] - y0 + np.arange(3)).ravel(), (b[:, None] - y0 + np.arange(3)).ravel())]
+            W += (R @ (P @ Q).T).T
         return self.scale * W
 
+    def restricted(self, contacts) -> np.ndarray:
+        """W among `contacts` (ids) as a dense (3k, 3k) array (see block)."""
+        return self.block(contacts, contacts)
+
     def toarray(self) -> np.ndarray:
-        """W as a dense matrix (numpy, from the factors: for checks and for callers that need W),
-        as P (P Q)ᵀ with P sparse: O(n d) per segment, where Q Pᵀ formed dense costs O(d² n)
-        (3,465 rows: seconds)."""
-        return self.restricted(np.arange(self.n))
+        """W as a dense matrix (numpy, from the factors: for checks and for callers that need W)."""
+        return self.block(np.arange(self.n), np.arange(self.n))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -957,13 +966,9 @@ class FrictionalContactSolver:
             done = self._sweeps(sweeps, tol_abs) if sweeps else 0
             return self._r.to_numpy().astype(np.float64), done
 
-        W, block = self.W, self._block
-        if self.layout == FACTORED and 3 * self.n <= NEWTON_DENSE_ROWS:
-            # Newton reads W's blocks among the closing contacts and products with W at every
-            # step: formed once here, they are slices and BLAS calls, not a pass over the factors.
-            W = self.W.toarray()
-            block = lambda rows, cols: W[np.ix_(_dofs(rows), _dofs(cols))]
-        r, u, its, err2 = newton.solve(W, block, self._q_host, self.mu, self._D_host,
+        # A factored W stays factored: Newton reads W among the closing contacts once per solve
+        # (newton._Shared) and products through the factors.
+        r, u, its, err2 = newton.solve(self.W, self._block, self._q_host, self.mu, self._D_host,
                                        self._r.to_numpy().astype(np.float64), tol_abs, max_iterations, fallback,
                                        lambda r, u: _error2_numpy(r, u, self.mu))
         self._r.from_numpy(r.astype(self._npr))
@@ -974,9 +979,7 @@ class FrictionalContactSolver:
     def _block(self, rows, cols) -> np.ndarray:
         """W between contacts `rows` and `cols` (ids), dense."""
         if self.layout == FACTORED:
-            if rows is cols:
-                return self.W.restricted(rows)
-            return self.W.restricted(np.r_[rows, cols])[:3 * len(rows), 3 * len(rows):]
+            return self.W.block(rows, cols)
         r, c = _dofs(rows), _dofs(cols)
         if sp.issparse(self.W):                     # (also a small sparse W held densely)
             return self.W[r][:, c].toarray()
