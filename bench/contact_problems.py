@@ -16,8 +16,8 @@ Generated (rigid bodies, W = J M⁻¹ Jᵀ: more rows than the bodies' dofs, so 
   pile    a 2-D pyramid of boxes, each on the two below it, 4 contacts per touching pair;
   many    one box resting on the ground through a grid of 10 × 10 contact points (300 rows, 6 dofs).
 Dumped:
-  press   bench.stability's "press plate" cell (a 3,888-tet slab pressed flat by a plate: 2,166
-          rows), its problems every 10th step once pressed;
+  press   bench.stability's "press plate" cell (a 3,888-tet slab pressed flat by a plate: 2,382
+          rows, 3,465 once pressed), its problems every 10th step;
   liver450  scenes/liver_press with the alarm distance widened to 4 mm (about 450 rows), every
           4th step with at least 420 rows.
 """

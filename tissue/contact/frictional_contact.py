@@ -23,9 +23,9 @@ Methods:
   * "auto" (the contact stage's default): Gauss-Seidel below over the whole problem while it
     makes progress (every AUTO_PHASE sweeps at least halve the residual, at a rate that reaches
     the tolerance within AUTO_SWEEPS, one launch), then "newton" from where it stopped. Warm-started problems of a few hundred rows mostly end within the
-    sweeps, at microseconds each; the rest (many strongly coupled contacts, more rows than the
-    dofs they move: the press plate's 2,166 rows, where a sweep gains ~1 % of the residual) end in
-    a few Newton steps (bench/contact_solvers.py).
+    sweeps, at microseconds each; the rest (many strongly coupled contacts, often more rows than
+    the dofs they move: the press plate's 2,382-3,465 rows, where a sweep gains ~1 % of the
+    residual) end in a few Newton steps (bench/contact_solvers.py).
   * "newton": semi-smooth Newton on the Alart–Curnier function (tissue.contact.newton), on the
     host (dense LU among the closing contacts), Gauss-Seidel sweeps its fallback.
   * "gauss_seidel" (the API's default; Jean & Moreau, Duriez et al. 2006): contacts swept in order, each
