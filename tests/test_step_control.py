@@ -95,6 +95,37 @@ def test_a_rejected_step_is_two_half_steps(backend):
     assert np.allclose(controlled[1], solver.velocities(), rtol=0, atol=1e-12)
 
 
+def test_start_energy_reused_only_where_the_last_step_ended(backend, monkeypatch):
+    """A step starts where the last one ended: the check reuses that end's kinetic + elastic
+    energy (one evaluation a step). A state set in between, or a material changed, is evaluated
+    afresh, to the value a new check finds."""
+    import tissue.solver.step_control as step_control
+
+    calls, elastic_energy = [], step_control.elastic_energy
+    monkeypatch.setattr(step_control, "elastic_energy", lambda *a: calls.append(1) or elastic_energy(*a))
+    mesh = stability._mesh()
+    cell = dict(case="material", young=1e6, poisson=0.3, dt=0.01, rotation="polar")
+    x0, v0, fixed = stability.initial_state(cell, mesh)
+    solver = stability.solver_for(cell, mesh, Material(1e6, 0.3, 1000.0))
+    solver.set_fixed(fixed)
+    solver.set_state(x0, v0)
+    control = EnergyControl(solver)
+
+    def evaluations(change=None):
+        if change is not None:
+            change()
+        before = len(calls)
+        control.step()
+        assert solver.stats.counters["energy_rejections"] == 0
+        return len(calls) - before
+
+    assert [evaluations(), evaluations(), evaluations()] == [2, 1, 1]
+    assert evaluations(lambda: solver.set_state(solver.positions(), 1.01 * solver.velocities())) == 2
+    assert evaluations(lambda: solver.fem.model.set_material(Material(2e6, 0.3, 1000.0))) == 2
+    x, v = solver.positions(), solver.velocities()
+    assert control.energy(x, v) == EnergyControl(solver).energy(x, v)
+
+
 @pytest.mark.parametrize("young, dt", [(1e4, 0.5), (1e3, 0.1)])
 def test_soft_beam_at_large_steps_gains_energy_unless_checked(backend, young, dt):
     """ρgL/E = 0.098 and 0.98: the beam swings down by order one of its length per step. Each

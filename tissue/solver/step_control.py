@@ -12,8 +12,10 @@ elastic (the model's own: tissue.fem.energy) less the work of gravity and the ap
 forces over the step. If it rose by more than `tolerance` of the energy in play, the step is
 undone and taken as two steps of dt/2, each checked the same way, down to dt / 2^max_halvings; a
 step still gaining energy there is kept, and counted (`energy_unresolved` in the solver's stats).
-The stats also count the step's rejections (`energy_rejections`). Costs: one energy evaluation
-per step on the host (a signed SVD per element), and the rejected steps' work.
+The stats also count the step's rejections (`energy_rejections`). Costs: an energy evaluation on
+the host (the principal stretches of every element) at the end of each step, and at its start
+unless the state is the one the last step ended at (the contact stage's correction moves it), and
+the rejected steps' work (bench/step_control.py).
 """
 
 from __future__ import annotations
@@ -36,15 +38,20 @@ class EnergyControl:
         if not (isinstance(max_halvings, int) and max_halvings >= 0):
             raise TissueError(f"max_halvings: must be an integer ≥ 0, got {max_halvings!r}")
         self.solver, self.tolerance, self.max_halvings = solver, tolerance, max_halvings
+        self._last = None       # the last kinetic + elastic energy evaluated, and what it depends on
 
     def energy(self, x: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """(kinetic + elastic, the potential of gravity and the applied forces) at (x, v)."""
         solver = self.solver
         model = solver.model
-        mass = model.mass
-        inner = 0.5 * float(mass @ (v * v).sum(1)) + elastic_energy(model, x, solver.fem.rotation)
-        potential = -float(mass @ (x @ np.asarray(solver.gravity, dtype=np.float64)))
+        key = (x, v, model.mass, model.tets, model.elastic, model.Dm_inv)
+        if self._last is not None and all(a.shape == b.shape and np.array_equal(a, b) for a, b in zip(key, self._last[0])):
+            inner = self._last[1]           # a step's start where the last one ended
+        else:
+            inner = 0.5 * float(model.mass @ (v * v).sum(1)) + elastic_energy(model, x, solver.fem.rotation)
+        potential = -float(model.mass @ (x @ np.asarray(solver.gravity, dtype=np.float64)))
         potential -= float((solver.external_forces() * x).sum())
+        self._last = (tuple(np.array(a) for a in key), inner)
         return inner, potential
 
     def step(self) -> None:
