@@ -1177,7 +1177,7 @@ def test_liver_press_450_rows_no_step_at_the_cap(backend):
     """liver_press with the alarm distance widened to ~450 rows (bench/contact.py): no step with
     420 rows or more ends at the 100-iteration cap above the 1e-6 m tolerance (Gauss-Seidel alone:
     4 of 30 such steps). Known: two steps of 387 rows (36 and 38) end at the cap at 1.4e-6 and
-    3.6e-6 m (before 1259eb0: 1.3e-6 and 6.5e-6), Newton crawling on 13 closing contacts whose
+    3.6e-6 m (before 7c6a4a2: 1.3e-6 and 6.5e-6), Newton crawling on 13 closing contacts whose
     rows outnumber their nodes' dofs (W singular): an expected failure while they do."""
     from bench.contact import WIDE_DISTANCE, contact_stage, press
 
