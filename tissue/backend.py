@@ -4,10 +4,12 @@ Nothing initialises Taichi at import time. `init()` reads its arguments, else th
 (`TISSUE_ARCH` = auto|cpu|cuda|vulkan, `TISSUE_PRECISION` = f64|f32), else the defaults
 (auto arch = CUDA when present, else CPU; float64).
 
-Taichi's own IR optimisation passes (`advanced_optimization`) are off unless
-`TISSUE_ADVANCED_OPTIMIZATION=1`: LLVM optimises the kernels either way, and the passes cost
-about ten times the CPU time of compiling the serial step kernel while buying no faster step
-(`python -m bench.compile_options`, bench/results/compile_options.json).
+Taichi's own IR optimisation passes (`advanced_optimization`) are chosen per kernel by default
+(`TISSUE_ADVANCED_OPTIMIZATION=auto`): on, except for the kernels marked
+`compilation.without_ir_passes` (the serial step kernel, a whole implicit step inlined), where they
+cost ~95 % of a cold start and buy little. `1` runs them on every kernel, `0` on none; LLVM
+optimises every kernel either way (`python -m bench.compile_options`,
+bench/results/compile_options.json).
 """
 
 from __future__ import annotations
@@ -49,11 +51,15 @@ def _resolve_arch(name: str):
     return {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan}[name]
 
 
-def _advanced_optimization() -> bool:
-    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "0")
-    if value not in ("0", "1"):
-        raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected 0 or 1, got {value!r}")
-    return value == "1"
+PASSES = ("auto", "0", "1")
+
+
+def ir_passes() -> str:
+    """TISSUE_ADVANCED_OPTIMIZATION: auto (per kernel, the default), 1 (every kernel) or 0 (none)."""
+    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "auto").lower()
+    if value not in PASSES:
+        raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected auto, 0 or 1, got {value!r}")
+    return value
 
 
 def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Backend:
@@ -72,11 +78,12 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
         return _current
     if _current is not None:
         ti.reset()
+    passes = ir_passes()
     wanted = _resolve_arch(arch)
     fp = ti.f64 if precision == "f64" else ti.f32
     ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
-            advanced_optimization=_advanced_optimization(), log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
-    compilation.install()
+            advanced_optimization=passes != "0", log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
+    compilation.install(per_kernel=passes == "auto")
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:
         ti.reset()

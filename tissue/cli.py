@@ -227,10 +227,10 @@ def cmd_info(args) -> int:
     requested = args.arch or os.environ.get("TISSUE_ARCH") or "auto"
     print(f"backend    {be.arch} (requested {requested})")
     print(f"precision  {be.precision}")
-    import taichi as ti
+    from .backend import ir_passes
 
-    passes = "on" if ti.lang.impl.current_cfg().advanced_optimization else "off"
-    print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=1|0)")
+    passes = {"auto": "per kernel (off for the serial step kernel)", "1": "on", "0": "off"}[ir_passes()]
+    print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=auto|1|0)")
     print(f"device     {_device(be.arch)}")
     print("libraries  " + ", ".join(f"{p} {_version(p)}" for p in
                                     ("taichi", "numpy", "scipy", "meshio", "pyvista", "vtk", "open3d")))

@@ -8,15 +8,23 @@ adds the wall time of both to a process-wide total; the launch that follows find
 kernel in Taichi's in-memory cache. The time of the launches themselves is not counted.
 
     compilation.seconds(), compilation.count()   totals so far in this process
+    compilation.seconds_by_kernel()              the same seconds per kernel function
     start = compilation.snapshot(); ...; compilation.snapshot() - start   the share of a region
 
 Not counted: the SNode trees' own compilation (fields), and, on CUDA, the
 driver's loading of the compiled module, which happens on the first launch.
+
+Taichi's IR passes (`advanced_optimization`) per kernel: Taichi reads the compile config when it
+compiles a kernel, and hashes it into the kernel's cache key, which it keeps on the kernel object
+and reuses at every later launch. So `install(per_kernel=True)` compiles the kernels marked by
+`without_ir_passes` with the passes off, the others with the process's setting, and each kernel
+keeps what it was compiled with, in memory and in the offline cache (keys differ by the setting).
 """
 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from taichi.lang import impl
@@ -24,7 +32,10 @@ from taichi.lang.kernel_impl import Kernel
 
 _seconds = 0.0
 _count = 0
+_by_kernel: dict[str, float] = {}   # seconds per kernel function, summed over its instances
 _original_materialize = Kernel.materialize
+_per_kernel = False
+_without_passes: set = set()     # Taichi Kernel objects compiled without the IR passes
 
 
 @dataclass(frozen=True)
@@ -50,13 +61,40 @@ def _materialize(self, key=None, args=None, arg_features=None):
         return
     kernel = next(reversed(self.compiled_kernels.values()))   # the one just added
     prog = impl.get_runtime().prog
-    prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel)
-    _seconds += time.perf_counter() - start
+    with _passes_for(self):
+        prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel)
+    elapsed = time.perf_counter() - start
+    _seconds += elapsed
     _count += 1
+    _by_kernel[self.func.__name__] = _by_kernel.get(self.func.__name__, 0.0) + elapsed
 
 
-def install() -> None:
-    """Start counting (idempotent)."""
+@contextmanager
+def _passes_for(kernel: Kernel):
+    """The process's compile config, with the IR passes off while a marked kernel compiles."""
+    config = impl.current_cfg()
+    if not (_per_kernel and kernel in _without_passes and config.advanced_optimization):
+        yield
+        return
+    config.advanced_optimization = False
+    try:
+        yield
+    finally:
+        config.advanced_optimization = True
+
+
+def without_ir_passes(kernel):
+    """Mark a `@ti.kernel` (put this decorator above it) to compile without Taichi's IR passes when
+    they are chosen per kernel: for kernels so large that the passes cost minutes."""
+    _without_passes.add(kernel._primal)
+    return kernel
+
+
+def install(per_kernel: bool | None = None) -> None:
+    """Start counting (idempotent); `per_kernel`: honour `without_ir_passes` (None: as before)."""
+    global _per_kernel
+    if per_kernel is not None:
+        _per_kernel = per_kernel
     Kernel.materialize = _materialize
 
 
@@ -68,6 +106,11 @@ def seconds() -> float:
 def count() -> int:
     """Kernel instances this process has compiled (a kernel compiled again after `ti.reset` counts again)."""
     return _count
+
+
+def seconds_by_kernel() -> dict[str, float]:
+    """Seconds of compilation per kernel function name (all its instances) in this process."""
+    return dict(_by_kernel)
 
 
 def snapshot() -> Compiled:

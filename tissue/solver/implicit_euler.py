@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import taichi as ti
 
-from .. import backend
+from .. import backend, compilation
 from ..errors import TissueError
 from ..fem import CorotationalFEM, assembled, corotational
 from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
@@ -711,6 +711,7 @@ def _end_parallel(k: STEP, o: ti.template()) -> ti.types.vector(6, float):
     return _report(k)
 
 
+@compilation.without_ir_passes      # the passes would take minutes on the whole step inlined
 @ti.kernel
 def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> ti.types.vector(6, float):
     """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""

@@ -1,0 +1,66 @@
+"""Taichi's IR passes chosen per kernel (tissue.compilation.without_ir_passes, the default
+TISSUE_ADVANCED_OPTIMIZATION=auto): a marked kernel is compiled exactly as with the passes off, the
+others exactly as with them on.
+
+Taichi hashes the compile config (advanced_optimization included) into a kernel's offline-cache
+key, so the cache files tell, independently of tissue's bookkeeping, which setting compiled each
+kernel: a kernel compiled with a setting another process already compiled it with is a cache hit
+(no new file); another setting is a new file.
+"""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+SCRIPT = """
+import sys
+import numpy as np
+import taichi as ti
+from tissue import backend, compilation
+backend.init("cpu")
+
+@compilation.without_ir_passes
+@ti.kernel
+def marked(a: ti.types.ndarray()):
+    for i in range(a.shape[0]):
+        a[i] = a[i] * 2.0 + 1.0
+
+@ti.kernel
+def plain(a: ti.types.ndarray()):
+    for i in range(a.shape[0]):
+        a[i] = a[i] * 3.0 - 1.0
+
+a = np.linspace(0.0, 1.0, 5)
+for _ in range(2):        # the second launch finds the kernel compiled at the first
+    marked(a)
+    plain(a)
+print("RESULT", " ".join(repr(float(v)) for v in a))
+"""
+
+
+def _run(tmp_path, setting):
+    """Run SCRIPT with the Taichi cache in tmp_path/cache: the cache's kernel files, the result line."""
+    cache, script = tmp_path / "cache", tmp_path / "kernels.py"    # Taichi reads a kernel's source file
+    script.write_text(SCRIPT)
+    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(cache), TISSUE_ADVANCED_OPTIMIZATION=setting)
+    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    result = next(line for line in done.stdout.splitlines() if line.startswith("RESULT"))
+    return {p.name for p in cache.glob("*.tic")}, result
+
+
+def test_a_marked_kernel_compiles_without_the_passes_the_others_with(tmp_path):
+    off, result_off = _run(tmp_path, "0")
+    assert len(off) == 2                                # both kernels, passes off
+    per_kernel, result_auto = _run(tmp_path, "auto")
+    assert off <= per_kernel and len(per_kernel) == 3   # `marked` found as compiled off; `plain` new (on)
+    on, result_on = _run(tmp_path, "1")
+    assert per_kernel <= on and len(on) == 4            # `marked` new (on); `plain` found as compiled on
+    again, _ = _run(tmp_path, "auto")
+    assert again == on                                  # auto's two kernels, both cached: nothing new
+    expected = np.linspace(0.0, 1.0, 5)
+    for _ in range(2):
+        expected = (expected * 2.0 + 1.0) * 3.0 - 1.0
+    assert result_off == result_auto == result_on == "RESULT " + " ".join(repr(float(v)) for v in expected)
