@@ -21,11 +21,11 @@ import taichi as ti
 from tissue import backend, compilation
 backend.init("cpu")
 
-@compilation.without_ir_passes
+@compilation.without_ir_passes(lambda a, scale: scale == 2.0)    # this instance only
 @ti.kernel
-def marked(a: ti.types.ndarray()):
+def marked(a: ti.types.ndarray(), scale: ti.template()):
     for i in range(a.shape[0]):
-        a[i] = a[i] * 2.0 + 1.0
+        a[i] = a[i] * scale + 1.0
 
 @ti.kernel
 def plain(a: ti.types.ndarray()):
@@ -34,7 +34,8 @@ def plain(a: ti.types.ndarray()):
 
 a = np.linspace(0.0, 1.0, 5)
 for _ in range(2):        # the second launch finds the kernel compiled at the first
-    marked(a)
+    marked(a, 2.0)
+    marked(a, 3.0)
     plain(a)
 print("RESULT", " ".join(repr(float(v)) for v in a))
 """
@@ -51,16 +52,16 @@ def _run(tmp_path, setting):
     return {p.name for p in cache.glob("*.tic")}, result
 
 
-def test_a_marked_kernel_compiles_without_the_passes_the_others_with(tmp_path):
+def test_a_marked_kernel_instance_compiles_without_the_passes_the_others_with(tmp_path):
     off, result_off = _run(tmp_path, "0")
-    assert len(off) == 2                                # both kernels, passes off
+    assert len(off) == 3                                # three instances, passes off
     per_kernel, result_auto = _run(tmp_path, "auto")
-    assert off <= per_kernel and len(per_kernel) == 3   # `marked` found as compiled off; `plain` new (on)
+    assert off <= per_kernel and len(per_kernel) == 5   # marked(2.0) found as compiled off; the others new
     on, result_on = _run(tmp_path, "1")
-    assert per_kernel <= on and len(on) == 4            # `marked` new (on); `plain` found as compiled on
+    assert per_kernel <= on and len(on) == 6            # marked(2.0) new (on); the others found as on
     again, _ = _run(tmp_path, "auto")
-    assert again == on                                  # auto's two kernels, both cached: nothing new
+    assert again == on                                  # auto's three instances, all cached: nothing new
     expected = np.linspace(0.0, 1.0, 5)
     for _ in range(2):
-        expected = (expected * 2.0 + 1.0) * 3.0 - 1.0
+        expected = (((expected * 2.0 + 1.0) * 3.0 + 1.0) * 3.0) - 1.0
     assert result_off == result_auto == result_on == "RESULT " + " ".join(repr(float(v)) for v in expected)

@@ -35,7 +35,7 @@ _count = 0
 _by_kernel: dict[str, float] = {}   # seconds per kernel function, summed over its instances
 _original_materialize = Kernel.materialize
 _per_kernel = False
-_without_passes: set = set()     # Taichi Kernel objects compiled without the IR passes
+_without_passes: dict = {}       # Taichi Kernel -> which instances (by their arguments) compile without
 
 
 @dataclass(frozen=True)
@@ -61,7 +61,7 @@ def _materialize(self, key=None, args=None, arg_features=None):
         return
     kernel = next(reversed(self.compiled_kernels.values()))   # the one just added
     prog = impl.get_runtime().prog
-    with _passes_for(self):
+    with _passes_for(self, args):
         prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel)
     elapsed = time.perf_counter() - start
     _seconds += elapsed
@@ -70,10 +70,11 @@ def _materialize(self, key=None, args=None, arg_features=None):
 
 
 @contextmanager
-def _passes_for(kernel: Kernel):
-    """The process's compile config, with the IR passes off while a marked kernel compiles."""
+def _passes_for(kernel: Kernel, args):
+    """The process's compile config, with the IR passes off while a marked kernel instance compiles."""
     config = impl.current_cfg()
-    if not (_per_kernel and kernel in _without_passes and config.advanced_optimization):
+    when = _without_passes.get(kernel)
+    if not (_per_kernel and config.advanced_optimization and when is not None and when(*args)):
         yield
         return
     config.advanced_optimization = False
@@ -83,11 +84,14 @@ def _passes_for(kernel: Kernel):
         config.advanced_optimization = True
 
 
-def without_ir_passes(kernel):
-    """Mark a `@ti.kernel` (put this decorator above it) to compile without Taichi's IR passes when
-    they are chosen per kernel: for kernels so large that the passes cost minutes."""
-    _without_passes.add(kernel._primal)
-    return kernel
+def without_ir_passes(when=lambda *args: True):
+    """A decorator (above `@ti.kernel`): compile the kernel's instances for which `when(*arguments of
+    the launch)` holds without Taichi's IR passes, when the passes are chosen per kernel. For kernels
+    so large that the passes cost minutes."""
+    def mark(kernel):
+        _without_passes[kernel._primal] = when
+        return kernel
+    return mark
 
 
 def install(per_kernel: bool | None = None) -> None:

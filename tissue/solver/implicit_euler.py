@@ -694,11 +694,21 @@ def _report(k: ti.template()):
                       k.scalars[NONFINITE], ti.cast(k.inverted[0], float)])
 
 
+def _multigrid(k, o, *_) -> bool:
+    """A step kernel's instance with the multigrid V-cycle inlined: large enough that Taichi's IR
+    passes take minutes to compile it (the serial step: ~30x the compile time without them) for
+    12-16 % of its step time; the other schemes' kernels compile in seconds with them, and the
+    parallel ones step up to a third faster (python -m bench.compile_options)."""
+    return o.preconditioner == "multigrid"
+
+
+@compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _begin_parallel(k: STEP, o: ti.template(), tol: ti.f64):
     _begin(k, o, tol)
 
 
+@compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _iterate_parallel(k: STEP, o: ti.template()):
     for _ in ti.static(range(o.unroll)):
@@ -711,7 +721,7 @@ def _end_parallel(k: STEP, o: ti.template()) -> ti.types.vector(6, float):
     return _report(k)
 
 
-@compilation.without_ir_passes      # the passes would take minutes on the whole step inlined
+@compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> ti.types.vector(6, float):
     """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
