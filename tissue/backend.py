@@ -7,8 +7,8 @@ Nothing initialises Taichi at import time. `init()` reads its arguments, else th
 Taichi's own IR optimisation passes (`advanced_optimization`) are chosen per kernel by default
 (`TISSUE_ADVANCED_OPTIMIZATION=auto`): on, except for the kernel instances marked
 `compilation.without_ir_passes` (the step kernels of multigrid schemes, a whole implicit step with
-its V-cycles inlined), where they cost ~95 % of a cold start for a step 12-16 % faster. `1` runs them on every kernel, `0` on none; LLVM
-optimises every kernel either way (`python -m bench.compile_options`,
+its V-cycles inlined), where they cost ~95 % of a cold start for a step 12-16 % faster. `1` runs
+them on every kernel, `0` on none; LLVM optimises every kernel either way (`python -m bench.compile_options`,
 bench/results/compile_options.json).
 """
 
