@@ -8,7 +8,7 @@ adds the wall time of both to a process-wide total; the launch that follows find
 kernel in Taichi's in-memory cache. The time of the launches themselves is not counted.
 
     compilation.seconds(), compilation.count()   totals so far in this process
-    compilation.seconds_by_kernel()              the same seconds per kernel function
+    compilation.seconds_by_kernel(cpu=False)     the same seconds (or CPU seconds) per kernel function
     start = compilation.snapshot(); ...; compilation.snapshot() - start   the share of a region
 
 Not counted: the SNode trees' own compilation (fields), and, on CUDA, the
@@ -32,7 +32,7 @@ from taichi.lang.kernel_impl import Kernel
 
 _seconds = 0.0
 _count = 0
-_by_kernel: dict[str, float] = {}   # seconds per kernel function, summed over its instances
+_by_kernel: dict[str, list[float]] = {}   # [wall, CPU] seconds per kernel function, over its instances
 _original_materialize = Kernel.materialize
 _per_kernel = False
 _without_passes: dict = {}       # Taichi Kernel -> which instances (by their arguments) compile without
@@ -55,7 +55,7 @@ def _materialize(self, key=None, args=None, arg_features=None):
         return _original_materialize(self, key, args, arg_features)
     self.runtime.materialize()                  # pending fields first: not kernel compilation
     before = len(self.compiled_kernels)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     _original_materialize(self, key, args, arg_features)
     if len(self.compiled_kernels) == before:    # key=None named an instance compiled already
         return
@@ -66,7 +66,9 @@ def _materialize(self, key=None, args=None, arg_features=None):
     elapsed = time.perf_counter() - start
     _seconds += elapsed
     _count += 1
-    _by_kernel[self.func.__name__] = _by_kernel.get(self.func.__name__, 0.0) + elapsed
+    totals = _by_kernel.setdefault(self.func.__name__, [0.0, 0.0])
+    totals[0] += elapsed
+    totals[1] += time.process_time() - cpu
 
 
 @contextmanager
@@ -112,9 +114,10 @@ def count() -> int:
     return _count
 
 
-def seconds_by_kernel() -> dict[str, float]:
-    """Seconds of compilation per kernel function name (all its instances) in this process."""
-    return dict(_by_kernel)
+def seconds_by_kernel(cpu: bool = False) -> dict[str, float]:
+    """Seconds of compilation per kernel function name (all its instances) in this process: wall,
+    or CPU of the process (what a loaded machine does not inflate)."""
+    return {name: totals[1 if cpu else 0] for name, totals in _by_kernel.items()}
 
 
 def snapshot() -> Compiled:
