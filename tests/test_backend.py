@@ -12,7 +12,7 @@ CODE = ("import taichi as ti\nfrom tissue import backend\nbackend.init('cpu')\n"
 
 
 # Taichi's process-wide setting, and whether kernels marked without_ir_passes are compiled without
-@pytest.mark.parametrize("value, expected", [(None, "True True"), ("auto", "True True"), ("0", "False False"),
+@pytest.mark.parametrize("value, expected", [(None, "False False"), ("auto", "True True"), ("0", "False False"),
                                              ("1", "True False")])
 def test_advanced_optimization_follows_the_environment(value, expected):
     env = {k: v for k, v in os.environ.items() if k != "TISSUE_ADVANCED_OPTIMIZATION"}

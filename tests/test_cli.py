@@ -113,7 +113,7 @@ def test_info_names_backend_and_versions(capsys, backend):
     code, out, _ = run(capsys, "info", "--arch", "cpu")
     assert code == 0
     assert "backend    cpu" in out and "precision  f64" in out and "taichi 1.7" in out and "numpy" in out
-    assert "IR passes  per kernel" in out    # the default (bench/compile_options.py says why)
+    assert "IR passes  off" in out          # the default (bench/compile_options.py says why)
 
 
 def _python(code: str, **kwargs):

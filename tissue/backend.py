@@ -4,12 +4,12 @@ Nothing initialises Taichi at import time. `init()` reads its arguments, else th
 (`TISSUE_ARCH` = auto|cpu|cuda|vulkan, `TISSUE_PRECISION` = f64|f32), else the defaults
 (auto arch = CUDA when present, else CPU; float64).
 
-Taichi's own IR optimisation passes (`advanced_optimization`) are chosen per kernel by default
-(`TISSUE_ADVANCED_OPTIMIZATION=auto`): on, except for the kernel instances marked
-`compilation.without_ir_passes` (the step kernels of multigrid schemes, a whole implicit step with
-its V-cycles inlined), where they cost ~95 % of a cold start for a step 12-16 % faster. `1` runs
-them on every kernel, `0` on none; LLVM optimises every kernel either way (`python -m bench.compile_options`,
-bench/results/compile_options.json).
+Taichi's own IR optimisation passes (`advanced_optimization`) are off unless
+`TISSUE_ADVANCED_OPTIMIZATION` says otherwise: `1` runs them on every kernel, `auto` per kernel
+(on, except for the kernel instances marked `compilation.without_ir_passes`: the step kernels of
+multigrid schemes, where they cost minutes). LLVM optimises every kernel either way. Off is the
+default because, measured, no kernel of the scenes steps enough faster with them to pay their
+compile time (`python -m bench.compile_options`, bench/results/compile_options*.json).
 """
 
 from __future__ import annotations
@@ -55,8 +55,8 @@ PASSES = ("auto", "0", "1")
 
 
 def ir_passes() -> str:
-    """TISSUE_ADVANCED_OPTIMIZATION: auto (per kernel, the default), 1 (every kernel) or 0 (none)."""
-    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "auto").lower()
+    """TISSUE_ADVANCED_OPTIMIZATION: 0 (no kernel, the default), auto (per kernel) or 1 (every kernel)."""
+    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "0").lower()
     if value not in PASSES:
         raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected auto, 0 or 1, got {value!r}")
     return value

@@ -230,7 +230,7 @@ def cmd_info(args) -> int:
     from .backend import ir_passes
 
     passes = {"auto": "per kernel (off for the multigrid step kernels)", "1": "on", "0": "off"}[ir_passes()]
-    print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=auto|1|0)")
+    print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=0|auto|1)")
     print(f"device     {_device(be.arch)}")
     print("libraries  " + ", ".join(f"{p} {_version(p)}" for p in
                                     ("taichi", "numpy", "scipy", "meshio", "pyvista", "vtk", "open3d")))
