@@ -18,16 +18,30 @@ Medians over the cut steps; kernels are compiled by a warm-up cut on a small box
 
 Then the lazy update's cost against its fold threshold FOLD_RANK (0 to 480, at the larger mesh).
 
+Then the eager fold beside this machine's memory floor: C ← C − T Uᵀ (tissue.cutting.compliance's
+fold: the upper triangle in place by dgemm, mirrored) at the ranks an eager step adds, on a C of
+the larger mesh's size, against a plain copy of its n² float64 (read n², write n²: what any pass
+over C costs at least).
+
+With `--versus COMMIT`: the cut steps at the larger mesh in this checkout and in COMMIT, in
+subprocesses that alternate round after round (bench.common.alternate_with_commit): per round the
+medians by stage, then the median over rounds.
+
 Also (issue #12's target): a topology edit of 10 elements on a live ~4,000-tetrahedron body,
 within its reserved capacity: remove 10 elements, add 2 nodes (centroids of two of them) and 16
 elements (8 back, the 2 split into 4 around the new nodes), with the solver's state and assembled
 blocks following; median ms over repetitions, state allocations and kernels compiled (none).
 
-    python -m bench.cutting
+    python -m bench.cutting [--versus COMMIT] [--rounds 3]
 """
 
+import argparse
+import json
 import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 # One BLAS thread unless told otherwise (set before numpy loads OpenBLAS): the compliance's
 # products are small, and on this shared 2-core machine a second OpenBLAS thread spins against
@@ -38,7 +52,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import scipy.linalg
 
-from bench.common import machine, print_machine, write_results  # noqa: E402
+from bench.common import alternate_with_commit, machine, print_machine, write_results  # noqa: E402
 from scenes.liver_cut import LiverCut  # noqa: E402
 from tissue import backend  # noqa: E402
 from tissue.scene import held_nodes  # noqa: E402
@@ -256,6 +270,78 @@ def fold_rank_sweep(target: int = SIZES[-1], ranks=(0, 60, 120, 240, 480)) -> di
              cpu_mean_ms=float(np.mean(cpu[r])), cpu_max_ms=float(np.max(cpu[r]))) for r in ranks]}
 
 
+def fold_floor(n: int, capacity: int, ranks=(12, 24, 48), repeats: int = 7) -> dict:
+    """Median ms (CPU time and wall) of the fold C ← C − T Uᵀ at these ranks on a random symmetric
+    C of n dofs within `capacity` (as the compliance keeps it), and of a plain copy of its n²
+    float64 into another array: the memory floor of one pass over C (GB/s: 16 n² bytes moved)."""
+    from tissue.cutting.compliance import RANK_ROOM, _host_fold
+
+    rng = np.random.default_rng(0)
+    C = rng.standard_normal((capacity, capacity))
+    C += C.T
+    T, U = np.zeros((capacity, FOLD_RANK + RANK_ROOM)), np.zeros((capacity, FOLD_RANK + RANK_ROOM))
+    free, copy = np.ones(capacity, bool), np.empty((n, n))
+
+    def clocks(run):
+        wall, cpu = [], []
+        for _ in range(repeats + 1):
+            c, t = time.process_time(), time.perf_counter()
+            run()
+            wall.append(1e3 * (time.perf_counter() - t))
+            cpu.append(1e3 * (time.process_time() - c))
+        return {"wall_median_ms": float(np.median(wall[1:])), "cpu_median_ms": float(np.median(cpu[1:]))}
+
+    out = {"n": n, "capacity": capacity, "copy": clocks(lambda: np.copyto(copy, C[:n, :n])), "fold": []}
+    out["copy"]["gb_per_s_cpu"] = 16e-6 * n * n / out["copy"]["cpu_median_ms"]
+    for rank in ranks:
+        U[:n, :rank] = 1e-3 * rng.standard_normal((n, rank))
+        X = rng.standard_normal((rank, rank))
+        T[:n, :rank] = U[:n, :rank] @ (X + X.T)
+        out["fold"].append({"rank": rank, **clocks(lambda: _host_fold(C, T, U, rank, free, n))})
+    return out
+
+
+CHILD = r"""
+import json, os, sys
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+from bench import cutting
+from tissue import backend
+backend.init(precision="f64")
+cutting.warm_up()
+r = cutting.run(int(sys.argv[1]))
+print("RESULT " + json.dumps({k: r[k] for k in ("tets", "cut_steps", "median_ms", "whole_step_median_ms", "cpu_median_ms",
+                                                "mean_ms")}))
+"""
+
+
+def measure(checkout: Path, target: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    done = subprocess.run([sys.executable, "-c", CHILD, str(target)], cwd=checkout, env=env, capture_output=True,
+                          text=True)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if done.returncode != 0 or not lines:
+        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
+    return json.loads(lines[0][len("RESULT "):])
+
+
+def versus(other: str, rounds: int, target: int = SIZES[-1]) -> dict:
+    """The cut steps at `target` tetrahedra here and at commit `other`, alternately (see the
+    module docstring); per round the medians, then the median over rounds of each."""
+    def describe(r):
+        w, c = r["whole_step_median_ms"], r["cpu_median_ms"]
+        return (f"whole step lazy {w['lazy']:.2f} ms (CPU {c['whole_step_lazy']:.2f}), eager {w['eager']:.2f} "
+                f"(CPU {c['whole_step_eager']:.2f}); compliance lazy {r['median_ms']['compliance_lazy']:.2f}, "
+                f"eager {r['median_ms']['compliance_eager']:.2f}")
+
+    other, runs = alternate_with_commit(other, rounds, lambda checkout: measure(checkout, target), describe,
+                                        prefix="tissue-cutting-")
+    summary = {}
+    for name, results in runs.items():
+        summary[name] = {group: {k: float(np.median([r[group][k] for r in results])) for k in results[0][group]}
+                         for group in ("median_ms", "whole_step_median_ms", "cpu_median_ms", "mean_ms")}
+    return {"other": other, "target": target, "rounds": runs, "median_over_rounds": summary}
+
+
 def _pieces(model) -> np.ndarray:
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
@@ -266,11 +352,24 @@ def _pieces(model) -> np.ndarray:
     return connected_components(incidence @ incidence.T)[1]
 
 
-def main() -> None:
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--versus", help="also measure the cut steps against this commit, alternately")
+    parser.add_argument("--rounds", type=int, default=3)
+    args = parser.parse_args(argv)
     backend.init(precision="f64")
     info = machine()
     print_machine(info)
     print(f"# BLAS threads {os.environ['OPENBLAS_NUM_THREADS']}; load average at start {os.getloadavg()[0]:.1f}")
+    compared = None
+    if args.versus:
+        compared = versus(args.versus, args.rounds)
+        for name, m in compared["median_over_rounds"].items():
+            print(f"{name:>5} (median of {args.rounds} rounds): whole step lazy {m['whole_step_median_ms']['lazy']:.2f} ms "
+                  f"(CPU {m['cpu_median_ms']['whole_step_lazy']:.2f}), eager {m['whole_step_median_ms']['eager']:.2f} "
+                  f"(CPU {m['cpu_median_ms']['whole_step_eager']:.2f}); compliance lazy "
+                  f"{m['median_ms']['compliance_lazy']:.2f} (CPU {m['cpu_median_ms']['compliance_lazy']:.2f}), eager "
+                  f"{m['median_ms']['compliance_eager']:.2f} (CPU {m['cpu_median_ms']['compliance_eager']:.2f})")
     warm_up()
     edit = edit_timing()
     m = edit["median_ms"]
@@ -301,6 +400,11 @@ def main() -> None:
         print(f"  worst created: dihedral {r['worst_created']['min_dihedral']:.1f} deg, condition "
               f"{r['worst_created']['max_condition']:.1f}; naive split: dihedral "
               f"{r['worst_naive']['min_dihedral']:.2f} deg, condition {r['worst_naive']['max_condition']:.1f}")
+    last = results[-1]
+    floor = fold_floor(3 * last["nodes_after"], 3 * (last["nodes"] + last["nodes"] // 4))
+    print(f"\nmemory floor at n = {floor['n']} dofs: a copy of n² float64 {floor['copy']['cpu_median_ms']:.2f} ms CPU "
+          f"({floor['copy']['gb_per_s_cpu']:.1f} GB/s), wall {floor['copy']['wall_median_ms']:.2f}; the fold: " + ", ".join(
+              f"rank {f['rank']} {f['cpu_median_ms']:.2f} ms CPU (wall {f['wall_median_ms']:.2f})" for f in floor["fold"]))
     sweep = fold_rank_sweep()
     print(f"\nlazy update against its fold threshold ({sweep['tets']} tets; 0: eager), ms:")
     for row in sweep["rows"]:
@@ -309,7 +413,7 @@ def main() -> None:
               f"mean {row['wall_mean_ms']:6.2f}; {row['folds']} folds")
     write_results("cutting", {"machine": info, "fold_rank_sweep": sweep, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
                               "load_average": os.getloadavg(), "step_length_m": STEP_LENGTH, "topology_edit": edit,
-                              "results": results})
+                              "results": results, "memory_floor": floor, "versus": compared})
 
 
 if __name__ == "__main__":

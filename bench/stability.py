@@ -509,6 +509,9 @@ def main(argv=None):
     parser.add_argument("--only", type=rotations_list, help="run only the cells of these rotations (comma-separated: "
                         "large, polar, invertible) and replace them in bench/results/stability.json, keeping the "
                         "others (and their run's record)")
+    parser.add_argument("--cases", type=lambda text: text.split(","), help="run only the cells of these cases "
+                        "(comma-separated: material, twist, inverted, impact, jerk, friction, press) and replace "
+                        "them in bench/results/stability.json, like --only (both: the cells in both)")
     parser.add_argument("--material-only", action="store_true", help="only the E × ν × dt cells")
     parser.add_argument("--step-control", choices=["energy", "none"], default=STEP_CONTROL,
                         help="'none': the ablation without the energy check, written to "
@@ -531,8 +534,12 @@ def main(argv=None):
     cells += invertible_cells(**({k: QUICK[k] for k in ("poisson", "dt")} if args.quick else {}))
     if args.only:
         cells = [c for c in cells if c["rotation"] in args.only]
+    if args.cases:
+        cells = [c for c in cells if c["case"] in args.cases]
     if args.material_only:
         cells = [c for c in cells if c["case"] == "material"]
+    if not cells:
+        parser.error("no cells left by --only / --cases")
     for c in cells:
         c.update(arch=args.arch, step_control=args.step_control)
     name = "stability" if args.step_control == STEP_CONTROL else "stability_unchecked"
@@ -542,11 +549,12 @@ def main(argv=None):
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
     data = {"machine": info, "cells": results}
-    if args.only and name == "stability":   # the other cells and the record of the run that measured them stay
+    if (args.only or args.cases) and name == "stability":   # the other cells and their run's record stay
         old = json.loads((RESULTS / "stability.json").read_text())
         records = {k: v for k, v in old.items() if k.startswith("machine")}
-        records.update({f"machine_{rotation}": info for rotation in args.only})
-        data = {**records, "cells": [r for r in old["cells"] if r.get("rotation") not in args.only] + results}
+        records[f"machine_{'_'.join([*(args.only or []), *(args.cases or [])])}"] = info
+        rerun = {(c["case"], c["rotation"]) for c in cells}
+        data = {**records, "cells": [r for r in old["cells"] if (r["case"], r.get("rotation")) not in rerun] + results}
         for r in data["cells"]:
             reclassify(r)
         results = data["cells"]

@@ -111,6 +111,13 @@ def test_vectorised_queries_match_numpy():
     want = np.flatnonzero((corners.min(axis=1) <= hi).all(axis=1) & (corners.max(axis=1) >= lo).all(axis=1))
     np.testing.assert_array_equal(_boxes_meeting(x, tets, lo, hi), want)
     assert 0 < len(want) < len(tets)
+    surface = CutSurface()
+    surface.add(rng.uniform(-1, 1, size=(60, 1, 3)) + rng.uniform(-0.1, 0.1, size=(60, 3, 3)))
+    points = rng.uniform(-1.2, 1.2, size=(300, 3))
+    everywhere = surface.distances(points)
+    for reach in (0.0, 0.05, 0.2, 5.0):          # the triangles near the points, else all: the same answer
+        for got, want in zip(surface.distances_near(points, reach), everywhere):
+            np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("states", [(1, -1, -1, -1), (1, 1, -1, -1), (1, -1, 0, 0), (1, 1, -1, 0), (-1, 1, 0, 1)])
@@ -319,3 +326,54 @@ def test_cutting_a_block_resting_in_contact(backend, compliance):
     assert surface == {tuple(sorted(f)) for f in solver.model.boundary_faces().tolist()}
     assert sum(r.split for r in cutter.reports) > 0
     assert result.contact_forces[:, 2].sum() == pytest.approx(weight, rel=2e-3)
+
+
+@pytest.mark.parametrize("blas", [None, False])
+def test_contact_reads_only_the_rows_it_needs_of_the_lazy_compliance(backend, blas):
+    """After a cut the contact stage reads A₀⁻¹ from the lazy cutting compliance without folding
+    it: the touched nodes' rows of C − T Uᵀ, gathered. The W it builds and the correction it applies
+    equal h (H R) A⁻¹ (H R)ᵀ and x += R h A⁻¹ (H R)ᵀ λ with A⁻¹ the direct inverse of the cut
+    body's rest matrix (1e-8 relative); a later step that finds the factors as they were folds them.
+    blas False: the gather in the kernel (other archs), into the contact's ndarray."""
+    import scipy.linalg
+    import scipy.sparse as sp
+    from test_contact import block, make_solver, on_plane
+
+    from tissue.cutting import CuttingCompliance
+    from tissue.solver.reference import rest_matrix
+
+    dt, alpha_m, alpha_k = 0.01, 1.0, 0.01
+    solver = make_solver(block(), dt=dt, rayleigh_mass=alpha_m, rayleigh_stiffness=alpha_k, cg_tolerance=1e-10)
+    stage = on_plane(solver, friction=0.5, tolerance=1e-10)
+    cutting = CuttingCompliance(solver.model, dt, alpha_m, alpha_k, fold_rank=200, blas=blas)
+    stage.follow_compliance(0, cutting)
+    cutter = Cutter(solver.model, solver, cutting)
+    path = CutPath(points=[[0.012, -0.07, 0.1], [0.014, 0.07, 0.1]], direction=[0, 0, -1], depth=0.2)
+    for _ in range(5):
+        solver.step()
+        stage.step()
+    assert cutter.cut(path.sweep(0.0, path.length / 3)).nodes_added > 0
+    solver.step()
+    x_free = solver.positions()
+    result = stage.step()
+    compliance = stage.compliance[0]
+    assert cutting.rank > 0 and compliance.C0 is not cutting.C        # read as rows, not folded
+
+    model = solver.model
+    n = model.n_nodes
+    A = rest_matrix(model.mesh(), solver.fem.material, dt, alpha_m, alpha_k)
+    free = np.flatnonzero(np.repeat(model.held == 0, 3))
+    inverse = np.zeros(A.shape)
+    inverse[np.ix_(free, free)] = scipy.linalg.inv(A[free][:, free].toarray())
+    HR = result.rows.body_matrix(0, n) @ sp.block_diag(list(compliance.nodal_rotations()))
+    W = dt * HR @ (HR @ inverse).T
+    assert result.rows.n_contacts > 0
+    assert np.abs(result.W - W).max() <= 1e-8 * np.abs(W).max()
+    dx = dt * (sp.block_diag(list(compliance.nodal_rotations())) @ (inverse @ (HR.T @ result.impulses)))
+    moved = (solver.positions() - x_free).reshape(-1)
+    assert np.abs(moved).max() > 0
+    assert np.abs(moved - dx).max() <= 1e-8 * np.abs(dx).max()
+
+    solver.step()
+    stage.step()                        # the factors as the last step read them: folded
+    assert cutting.rank == 0 and compliance.C0 is cutting.C

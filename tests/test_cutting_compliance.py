@@ -116,3 +116,22 @@ def test_a_wrong_sign_is_caught(backend):
     split(model, [3])
     eager._pending = [(tets, -blocks) for tets, blocks in eager._pending]
     assert relative_error(eager.dense(), direct_inverse(model)) > 1e-3
+
+
+def test_subtract_product_in_place_matches_numpy():
+    """tissue.cutting.blas.subtract_product: C −= A Bᵀ on blocks of larger arrays (their row strides
+    the BLAS's leading dimensions), against numpy, with nothing outside the block touched."""
+    from tissue.cutting.blas import subtract_product
+
+    rng = np.random.default_rng(3)
+    C, T, U = rng.standard_normal((40, 50)), rng.standard_normal((40, 9)), rng.standard_normal((50, 9))
+    for rows, cols, rank in [(slice(3, 17), slice(5, 41), 7), (slice(0, 40), slice(0, 50), 9), (slice(8, 9), slice(2, 3), 1)]:
+        expected = C.copy()
+        expected[rows, cols] -= T[rows, :rank] @ U[cols, :rank].T
+        subtract_product(C[rows, cols], T[rows, :rank], U[cols, :rank])
+        np.testing.assert_allclose(C, expected, rtol=0, atol=1e-13)
+    with pytest.raises(ValueError, match="shapes"):
+        subtract_product(C[:4, :5], T[:3, :2], U[:5, :2])
+    with pytest.raises(ValueError, match="contiguous rows"):
+        subtract_product(C[:4, :5], T[:4, :2], np.asfortranarray(U[:5, :2]))
+

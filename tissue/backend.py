@@ -10,6 +10,10 @@ Taichi's own IR optimisation passes (`advanced_optimization`) are off unless
 multigrid schemes, where they cost minutes). LLVM optimises every kernel either way. Off is the
 default because, measured, no kernel of the scenes steps enough faster with them to pay their
 compile time (`python -m bench.compile_options`, bench/results/compile_options*.json).
+
+Taichi's offline cache keeps at most 1 GiB (`OFFLINE_CACHE_BYTES`; Taichi's default is 100 MB and
+evicts the least recently used quarter when full): one scene's serial step kernel alone is 7-10 MB,
+so a handful of scenes and settings filled the default and sent the next run back to compiling.
 """
 
 from __future__ import annotations
@@ -19,11 +23,12 @@ from dataclasses import dataclass
 
 import taichi as ti
 
-from . import compilation
+from . import compilation, frontend
 from .errors import TissueError
 
 ARCHS = ("auto", "cpu", "cuda", "vulkan")
 PRECISIONS = ("f64", "f32")
+OFFLINE_CACHE_BYTES = 1 << 30
 
 
 @dataclass(frozen=True)
@@ -82,8 +87,10 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
     wanted = _resolve_arch(arch)
     fp = ti.f64 if precision == "f64" else ti.f32
     ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
-            advanced_optimization=passes != "0", log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
+            offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, advanced_optimization=passes != "0",
+            log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
     compilation.install(per_kernel=passes == "auto")
+    frontend.install()
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:
         ti.reset()

@@ -156,7 +156,8 @@ def cmd_run(args) -> int:
     # phases and shown on their own, so that the phases add up to the command's wall time.
     output_compile = compiled.seconds - build_compile - run_compile
     print(f"time: build {built - started - build_compile:.1f} s (mesh {sim.mesh_seconds:.1f} s), "
-          f"compile {compiled.seconds:.1f} s ({compiled.count} kernels), "
+          f"compile {compiled.seconds:.1f} s ({compiled.count} kernels: {compiled.ir_seconds:.1f} s to module, "
+          f"{compiled.machine_code_seconds:.1f} s machine code), "
           f"simulate {simulated - built - run_compile:.1f} s, output {finished - simulated - output_compile:.1f} s")
     shown = [str(p.relative_to(out)) for p in written if p.is_relative_to(out)]
     vtu = sum(len(series.steps) for series in output.series.values()) if output.series is not None else 0
@@ -227,10 +228,15 @@ def cmd_info(args) -> int:
     requested = args.arch or os.environ.get("TISSUE_ARCH") or "auto"
     print(f"backend    {be.arch} (requested {requested})")
     print(f"precision  {be.precision}")
+    import taichi as ti
+
     from .backend import ir_passes
 
     passes = {"auto": "per kernel (off for the multigrid step kernels)", "1": "on", "0": "off"}[ir_passes()]
     print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=0|auto|1)")
+    cfg = ti.lang.impl.current_cfg()
+    print(f"cache      {cfg.offline_cache_file_path} (Taichi's offline cache, at most "
+          f"{cfg.offline_cache_max_size_of_files >> 20} MiB)")
     print(f"device     {_device(be.arch)}")
     print("libraries  " + ", ".join(f"{p} {_version(p)}" for p in
                                     ("taichi", "numpy", "scipy", "meshio", "pyvista", "vtk", "open3d")))

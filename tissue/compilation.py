@@ -1,23 +1,28 @@
 """How long this process has spent compiling Taichi kernels, and how many kernel instances it compiled.
 
 A Taichi kernel is compiled once per instance (template arguments, argument types) on its first
-launch: `Kernel.materialize` turns the Python source into Taichi IR, then `Program.compile_kernel`
-compiles that IR (or loads it from the offline cache on disk). `install()` (called by
-`tissue.backend.init`) wraps `Kernel.materialize` so that it also does the second part at once and
-adds the wall time of both to a process-wide total; the launch that follows finds the compiled
-kernel in Taichi's in-memory cache. The time of the launches themselves is not counted.
+launch, in three parts: `Kernel.materialize` turns the Python source into Taichi IR;
+`Program.compile_kernel` compiles that IR to an LLVM module (or loads the module from the offline
+cache on disk); and the first launch turns the module into machine code (LLVM's JIT on the CPU,
+the driver's module load on CUDA), which the offline cache does not keep, so a warm start pays it
+too. `install()` (called by `tissue.backend.init`) wraps `Kernel.materialize` so that it does the
+first two parts at once, and `Kernel.launch_kernel` so that it times an instance's first launch
+(to the end of the kernel: one run of it is included, milliseconds beside the seconds of code
+generation). Process-wide totals:
 
-    compilation.seconds(), compilation.count()   totals so far in this process
-    compilation.seconds_by_kernel(cpu=False)     the same seconds (or CPU seconds) per kernel function
+    compilation.seconds(), compilation.count()   all three parts; kernel instances compiled
+    compilation.snapshot()                       the same with the split (`.ir_seconds`: source to
+                                                 IR to module; `.machine_code_seconds`: first launches)
     start = compilation.snapshot(); ...; compilation.snapshot() - start   the share of a region
+    compilation.seconds_by_kernel(cpu=False)     the first two parts per kernel function, wall or
+                                                 the process's CPU seconds (what load does not inflate)
 
-Not counted: the SNode trees' own compilation (fields), and, on CUDA, the
-driver's loading of the compiled module, which happens on the first launch.
+Not counted: the SNode trees' own compilation (fields).
 
 Taichi's IR passes (`advanced_optimization`) per kernel: Taichi reads the compile config when it
 compiles a kernel, and hashes it into the kernel's cache key, which it keeps on the kernel object
-and reuses at every later launch. So `install(per_kernel=True)` compiles the kernels marked by
-`without_ir_passes` with the passes off, the others with the process's setting, and each kernel
+and reuses at every later launch. So `install(per_kernel=True)` compiles the kernel instances
+marked by `without_ir_passes` with the passes off, the others with the process's setting, and each
 keeps what it was compiled with, in memory and in the offline cache (keys differ by the setting).
 """
 
@@ -30,27 +35,36 @@ from dataclasses import dataclass
 from taichi.lang import impl
 from taichi.lang.kernel_impl import Kernel
 
-_seconds = 0.0
+_ir_seconds = 0.0
+_machine_code_seconds = 0.0
 _count = 0
-_by_kernel: dict[str, list[float]] = {}   # [wall, CPU] seconds per kernel function, over its instances
+_not_yet_launched: set[int] = set()       # ids of kernel instances compiled and not launched yet
 _original_materialize = Kernel.materialize
+_original_launch = Kernel.launch_kernel
+_by_kernel: dict[str, list[float]] = {}   # [wall, CPU] seconds per kernel function, over its instances
 _per_kernel = False
-_without_passes: dict = {}       # Taichi Kernel -> which instances (by their arguments) compile without
+_without_passes: dict = {}                # Taichi Kernel -> which instances (by their arguments) compile without
 
 
 @dataclass(frozen=True)
 class Compiled:
     """Seconds spent compiling and kernel instances compiled (totals, or a difference of two)."""
 
-    seconds: float
+    ir_seconds: float
+    machine_code_seconds: float
     count: int
 
+    @property
+    def seconds(self) -> float:
+        return self.ir_seconds + self.machine_code_seconds
+
     def __sub__(self, other: "Compiled") -> "Compiled":
-        return Compiled(self.seconds - other.seconds, self.count - other.count)
+        return Compiled(self.ir_seconds - other.ir_seconds, self.machine_code_seconds - other.machine_code_seconds,
+                        self.count - other.count)
 
 
 def _materialize(self, key=None, args=None, arg_features=None):
-    global _seconds, _count
+    global _ir_seconds, _count
     if key in self.compiled_kernels:            # every launch comes through here: stay cheap
         return _original_materialize(self, key, args, arg_features)
     self.runtime.materialize()                  # pending fields first: not kernel compilation
@@ -64,8 +78,9 @@ def _materialize(self, key=None, args=None, arg_features=None):
     with _passes_for(self, args):
         prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel)
     elapsed = time.perf_counter() - start
-    _seconds += elapsed
+    _ir_seconds += elapsed
     _count += 1
+    _not_yet_launched.add(id(kernel))
     totals = _by_kernel.setdefault(self.func.__name__, [0.0, 0.0])
     totals[0] += elapsed
     totals[1] += time.process_time() - cpu
@@ -96,17 +111,30 @@ def without_ir_passes(when=lambda *args: True):
     return mark
 
 
+def _launch_kernel(self, t_kernel, *args):
+    global _machine_code_seconds
+    if id(t_kernel) not in _not_yet_launched:
+        return _original_launch(self, t_kernel, *args)
+    _not_yet_launched.discard(id(t_kernel))
+    start = time.perf_counter()
+    result = _original_launch(self, t_kernel, *args)
+    impl.get_runtime().prog.synchronize()
+    _machine_code_seconds += time.perf_counter() - start
+    return result
+
+
 def install(per_kernel: bool | None = None) -> None:
     """Start counting (idempotent); `per_kernel`: honour `without_ir_passes` (None: as before)."""
     global _per_kernel
     if per_kernel is not None:
         _per_kernel = per_kernel
     Kernel.materialize = _materialize
+    Kernel.launch_kernel = _launch_kernel
 
 
 def seconds() -> float:
-    """Wall time this process has spent compiling kernels (or loading them from the offline cache)."""
-    return _seconds
+    """Wall time this process has spent compiling kernels, all three parts."""
+    return _ir_seconds + _machine_code_seconds
 
 
 def count() -> int:
@@ -115,10 +143,10 @@ def count() -> int:
 
 
 def seconds_by_kernel(cpu: bool = False) -> dict[str, float]:
-    """Seconds of compilation per kernel function name (all its instances) in this process: wall,
-    or CPU of the process (what a loaded machine does not inflate)."""
+    """Seconds of source to module per kernel function name (all its instances) in this process:
+    wall, or CPU of the process (what a loaded machine does not inflate)."""
     return {name: totals[1 if cpu else 0] for name, totals in _by_kernel.items()}
 
 
 def snapshot() -> Compiled:
-    return Compiled(_seconds, _count)
+    return Compiled(_ir_seconds, _machine_code_seconds, _count)

@@ -696,6 +696,8 @@ class Simulation:
             where += f", {sum(in_steps[:skip]):.3f} s in {warm_up}"
         lines.append(f"{'mesh generation':<{width}}  {self.mesh_seconds:10.3f} s")
         lines.append(f"{'kernel compilation':<{width}}  {compiled.seconds:10.3f} s  ({compiled.count} kernels; {where})")
+        lines.append(f"{'  source to module':<{width}}  {compiled.ir_seconds:10.3f} s  (Taichi IR, LLVM module or the offline cache)")
+        lines.append(f"{'  machine code':<{width}}  {compiled.machine_code_seconds:10.3f} s  (at first launch: not cached)")
         return "\n".join(lines)
 
     def summary(self) -> dict:
@@ -709,6 +711,8 @@ class Simulation:
             stages=[s.name for s in self.stages],
             mesh_generation_seconds=round(self.mesh_seconds, 4),
             kernel_compilation_seconds=round(self.compiled().seconds, 4),
+            kernel_compilation_ir_seconds=round(self.compiled().ir_seconds, 4),
+            kernel_compilation_machine_code_seconds=round(self.compiled().machine_code_seconds, 4),
             kernels_compiled=self.compiled().count,
             kernel_compilation_seconds_in_steps=round(sum(self.compile_seconds_by_step), 4),
             ms_per_step=self.ms_per_step(),

@@ -78,6 +78,7 @@ except ImportError:          # the optional extra tissue[cholmod]; scipy's LU st
 FACTORIZATIONS = ("auto", "cholmod", "lu")
 from ..fem.corotational import nodal_rotation
 from ..fem.model import real_numpy
+from ..launch import host_view
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 from .storage import Storage
@@ -118,7 +119,8 @@ ROTATE, ASSEMBLE, FACTOR = 0, 1, 2     # what _delassus computes besides the nod
 
 @ti.kernel
 def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
-              R: ti.types.ndarray(), C0: ti.types.ndarray(), hr: ti.types.ndarray(), U: ti.types.ndarray(),
+              R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
+              U: ti.types.ndarray(),
               ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(),
               out: ti.types.ndarray(), P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32,
               k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
@@ -154,7 +156,7 @@ def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti
         for a, m in ti.ndrange(ld, ld):
             value_am = 0.0
             if a < d and m < d:
-                value_am = C0[3 * jds[o_touched + a // 3] + a % 3, 3 * jds[o_touched + m // 3] + m % 3]
+                value_am = C0[3 * rows[a // 3] + a % 3, 3 * jds[o_touched + m // 3] + m % 3]
             elif a == m:
                 value_am = inverse_mass
             Qt[a * ld + m] = value_am
@@ -213,7 +215,8 @@ def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti
 
 
 @ti.kernel
-def _correct(R: ti.types.ndarray(), C0: ti.types.ndarray(), hr: ti.types.ndarray(), r0: ti.types.ndarray(),
+def _correct(R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
+             r0: ti.types.ndarray(),
              pushed: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(),
              x: ti.types.ndarray(), v: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
              n_touched: ti.i32, h: float, inverse_mass: float, serial: ti.template()):
@@ -253,7 +256,7 @@ def _correct(R: ti.types.ndarray(), C0: ti.types.ndarray(), hr: ti.types.ndarray
         s = ti.Vector([0.0, 0.0, 0.0])
         for a in range(pushed[pushed.shape[0] - 1]):
             t = pushed[a]
-            row = 3 * jds[o_touched + t]
+            row = 3 * rows[t]
             g = r0[t]
             for c in ti.static(range(3)):
                 s[c] += C0[row, 3 * k + c] * g[0] + C0[row + 1, 3 * k + c] * g[1] + C0[row + 2, 3 * k + c] * g[2]
@@ -317,9 +320,11 @@ class WarpedCompliance:
             # every body (a field per body would compile them again for each).
             self.C0 = ti.ndarray(self.real, self.C0_host.shape)
             self.C0.from_numpy(self.C0_host.astype(self._np))
-        self.R = ti.ndarray(ti.types.matrix(3, 3, self.real), n)
-        self.r0 = ti.ndarray(ti.types.vector(3, self.real), n + 1)      # + the total impulse
-        self.pushed = ti.ndarray(ti.i32, n + 1)                         # touched nodes with r₀ ≠ 0, + their count
+        capacity = fem.model.node_capacity   # as the solver's state: a cut within it allocates nothing here
+        if getattr(self, "R", None) is None or self.R.shape[0] != capacity:
+            self.R = ti.ndarray(ti.types.matrix(3, 3, self.real), capacity)
+            self.r0 = ti.ndarray(ti.types.vector(3, self.real), capacity + 1)    # + the total impulse
+            self.pushed = ti.ndarray(ti.i32, capacity + 1)                       # touched nodes with r₀ ≠ 0, + their count
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
         # costs more than it saves at a few hundred rows on 2 cores); parallel above.
         self.serial = backend.current().arch == "cpu" and n < SERIAL_BELOW
@@ -336,7 +341,7 @@ class WarpedCompliance:
                 not np.isclose(compliance.stiffness_weight, solver.dt * solver.rayleigh_stiffness + solver.dt ** 2):
             raise TissueError("contact: the cutting compliance followed must be of this body's model, at its "
                               "solver's dt and damping")
-        self.source = compliance
+        self.source, self._version, self._gathered = compliance, -1, None
         self.follow_edits()
 
     def update_rotations(self) -> None:
@@ -346,20 +351,47 @@ class WarpedCompliance:
         _nodal_rotations(fem.R, *fem.model.gather_index(), self.R, self._tol)
 
     def nodal_rotations(self) -> np.ndarray:
-        return self.R.to_numpy().astype(np.float64)
+        return self.R.to_numpy()[:self.solver.fem.n_nodes].astype(np.float64)
 
     def prepare(self, jds: JaggedDiagonal) -> None:
         """This step's rows of H (the work is done by `add_to` or `factor`, or by `correct`
         without them)."""
         self.jds, self._ready = jds, False
-        if self.source is not None and (self.source.rank or self.source.C is not self.C0):
-            self.source.fold()              # lazy factors folded where W needs C (and C re-allocated on growth)
-            self.C0 = self.source.C
         d, real, storage = 3 * len(jds.touched), self.real, self.storage
+        self.rows = storage.get("rows", len(jds.touched), ti.i32)
+        blocks = self._read_source(jds.touched) if self.source is not None else jds.touched
+        if backend.current().arch == "cpu":
+            host_view(self.rows)[:len(blocks)] = blocks
+        else:
+            padded = np.zeros(self.rows.shape[0], np.int32)
+            padded[:len(blocks)] = blocks
+            self.rows.from_numpy(padded)
         self.hr = storage.get("hr", jds.nnz, ti.types.matrix(3, 3, real))          # (H R) per block
         self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
         self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
         self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
+
+    def _read_source(self, touched: np.ndarray) -> np.ndarray:
+        """C0 from the cutting compliance followed, and per touched node its block of rows in C0.
+        W and the correction read only the touched nodes' rows, so after a cut (lazy factors
+        pending, changed since the last step read them) these rows of C − T Uᵀ are gathered into
+        a compact array, k n (rank + 1) work; when a step finds the factors as the last one read
+        them (contact goes on, the cut does not), they are folded into C (n² rank, once) and C is
+        read in place from then on."""
+        source = self.source
+        changed, self._version = source.version != self._version, source.version
+        if source.rank and changed:
+            k = 3 * len(touched)
+            if self._gathered is None or self._gathered.shape[0] < k or self._gathered.shape[1] != source.capacity:
+                rows = k if self._gathered is None else max(k, 2 * self._gathered.shape[0])
+                self._gathered = ti.ndarray(ti.f64, (rows, source.capacity))
+                self._gathered.fill(0.0)    # (columns past the body's dofs stay zero: the correction reads them)
+            source.rows_into((3 * touched[:, None] + np.arange(3)).reshape(-1), self._gathered)
+            self.C0 = self._gathered
+            return np.arange(len(touched), dtype=np.int32)
+        source.fold()
+        self.C0 = source.C
+        return touched
 
     @property
     def free(self) -> bool:
@@ -374,7 +406,7 @@ class WarpedCompliance:
     def _run(self, mode, out, Qt=None, P=None, pos=None) -> None:
         fem, jds = self.solver.fem, self.jds
         none = self._none
-        _delassus(fem.R, *fem.model.gather_index(), self.R, self.C0, self.hr, self.U, self.ht,
+        _delassus(fem.R, *fem.model.gather_index(), self.R, self.C0, self.rows, self.hr, self.U, self.ht,
                   jds.packed, jds.value, self._Qt if Qt is None else Qt, out, none if P is None else P,
                   self._no_pos if pos is None else pos, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz,
                   len(jds.touched), self.solver.dt, self.inverse_mass, self._tol, mode, self.serial)
@@ -400,7 +432,7 @@ class WarpedCompliance:
             return
         if not self._ready:
             self._run(ROTATE, self._none)
-        _correct(self.R, self.C0, self.hr, self.r0, self.pushed, jds.packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
+        _correct(self.R, self.C0, self.rows, self.hr, self.r0, self.pushed, jds.packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
                  self.solver.x, self.solver.v, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched),
                  self.solver.dt, self.inverse_mass, self.serial)
 

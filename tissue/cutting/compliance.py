@@ -28,8 +28,11 @@ The three operations (gather, factor, fold) are Taichi kernels over the ndarrays
 run instead as numpy's BLAS on the same ndarrays' memory (tissue.launch.host_view), `blas=False`
 forcing the kernels (the tests check both): at 3,874 tetrahedra a fold at rank 255 took 368 ms
 in the kernel against 82 ms in one BLAS thread, a lazy update 15–25 ms against 4–15 ms (CPU time).
-The fold updates C's upper triangle a strip of rows at a time and mirrors it, so C stays exactly
-symmetric as the kernel keeps it.
+The fold updates C's upper triangle a strip of rows at a time, in place by the BLAS's dgemm
+(tissue.cutting.blas: no temporary product), and mirrors it, so C stays exactly symmetric as the
+kernel keeps it. The mirror is most of an eager fold's time (at rank 12-48 it costs about what
+the product does): a triangle-only C would halve the traffic, but every reader (the gather, W,
+the correction) reads whole rows.
 """
 
 import numpy as np
@@ -41,6 +44,7 @@ from .. import backend
 from ..errors import TissueError
 from ..fem.model import BodyModel
 from ..launch import host_view
+from .blas import subtract_product
 
 RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely folds midway
 RANK_TOLERANCE = 1e-13   # eigenvalues of a correction below this fraction of its largest: rounding
@@ -113,7 +117,7 @@ def _host_gather(C, T, U, rank, free, cols, n, out) -> None:
     k = len(cols)
     out[:k, :n] = C[cols, :n]
     if rank:
-        out[:k, :n] -= U[cols, :rank] @ T[:n, :rank].T
+        subtract_product(out[:k, :n], U[cols, :rank], T[:n, :rank])
     out[:k, :n] *= free[:n]
     out[:k][~free[cols]] = 0.0
 
@@ -129,7 +133,7 @@ def _host_factor(rows, k, L, X, units, T, U, r0, n) -> None:
     T[:n, r0:r0 + w] = Uw @ X
 
 
-FOLD_TILE = 512      # rows of C folded per product: the temporary stays small, BLAS stays efficient
+FOLD_TILE = 512      # rows of C folded per product (the strip mirrored right after, still partly in cache)
 
 
 def _host_fold(C, T, U, rank, free, n) -> None:
@@ -137,7 +141,7 @@ def _host_fold(C, T, U, rank, free, n) -> None:
     stays exactly symmetric), then zero outside the free dofs: as _fold."""
     for i0 in range(0, n, FOLD_TILE):
         i1 = min(i0 + FOLD_TILE, n)
-        C[i0:i1, i0:n] -= T[i0:i1, :rank] @ U[i0:n, :rank].T
+        subtract_product(C[i0:i1, i0:n], T[i0:i1, :rank], U[i0:n, :rank])     # in place, no temporary
         _mirror_upper(C[i0:i1, i0:i1])
         C[i1:n, i0:i1] = C[i0:i1, i1:n].T
     fixed = np.flatnonzero(~free[:n])
@@ -154,6 +158,14 @@ def _mirror_upper(square: np.ndarray, tile: int = 64) -> None:
         diagonal = square[s0:s1, s0:s1]
         diagonal[...] = np.triu(diagonal) + np.triu(diagonal, 1).T
         square[s1:b, s0:s1] = square[s0:s1, s1:b].T
+
+
+def _symmetric(X: np.ndarray) -> np.ndarray:
+    """(X + Xᵀ) / 2. Each factor pair's X is symmetric in exact arithmetic ((Λ⁻¹ + Vᵀ C V)⁻¹, S⁻¹,
+    C_dd⁻¹), so T Uᵀ = U X Uᵀ is too; its rounding asymmetry would make C's rows depend on which
+    side they are read from (a gather reads C − T Uᵀ by columns, the fold and the extension's
+    reuse of rows by rows): at 3,841 tetrahedra the lazy error reached 2.8e-10 without this."""
+    return 0.5 * (X + X.T)
 
 
 def element_blocks(model: BodyModel, ids: np.ndarray, mass_weight: float, stiffness_weight: float) -> np.ndarray:
@@ -225,6 +237,7 @@ class CuttingCompliance:
         self.fold_rank = int(fold_rank)
         self.rank = 0                   # factor columns in use (lazy)
         self.folds = 0
+        self.version = 0                # counts the updates that changed C (readers keep what they read)
         m = model.n_elements
         self._count = m                 # the model's elements at its last edit
         self._tets = np.zeros((model.element_capacity, 4), dtype=np.int64)
@@ -320,13 +333,14 @@ class CuttingCompliance:
         old, new = self._free, self._free_dofs(self.capacity)
         if not self._pending and np.array_equal(old, new):
             return
+        self.version += 1
         tets = np.concatenate([t for t, _ in self._pending]) if self._pending else np.zeros((0, 4), np.int64)
         blocks = np.concatenate([b for _, b in self._pending]) if self._pending else np.zeros((0, 12, 12))
         self._pending = []
         dropped = np.flatnonzero(old & ~new)
         if len(dropped):
             C_dd = self._columns(dropped)
-            self._add_factor(np.linalg.inv(C_dd))
+            self._add_factor(_symmetric(np.linalg.inv(_symmetric(C_dd))))
             self._set_free(old & new)
         kept = np.intersect1d((3 * tets[:, :, None] + np.arange(3)).reshape(-1), np.flatnonzero(old & new))
         B = assemble(tets, cancel_moved(tets, blocks), kept)
@@ -337,16 +351,22 @@ class CuttingCompliance:
             keep = np.abs(w) > RANK_TOLERANCE * np.abs(w).max()
             w, V = w[keep], V[:, keep]
             C_gg = self._columns(kept)
-            self._add_factor(np.linalg.solve(np.eye(len(w)) + w[:, None] * (V.T @ C_gg @ V), np.diag(w)), L=V)
+            self._add_factor(_symmetric(np.linalg.solve(np.eye(len(w)) + w[:, None] * (V.T @ C_gg @ V), np.diag(w))),
+                             L=V)
+            corrected = (kept, len(w))
+        else:
+            corrected = None
         gained = np.flatnonzero(new & ~old)
         if len(gained):
-            self._extend(gained, new)
+            self._extend(gained, new, corrected)
         self._set_free(new)
         if self.rank > self.fold_rank:
             self.fold()
 
-    def _extend(self, gained: np.ndarray, free: np.ndarray) -> None:
-        """Block-wise inversion for the dofs that became free, by the Schur complement."""
+    def _extend(self, gained: np.ndarray, free: np.ndarray, corrected=None) -> None:
+        """Block-wise inversion for the dofs that became free, by the Schur complement.
+        `corrected`: (the dofs gathered for the correction just applied, its rank), whose rows
+        serve here when they cover the ones needed (_corrected_columns)."""
         nodes = np.unique(gained // 3)
         codes = self.model.incidence_rows[nodes].reshape(-1)
         elements = np.unique(codes[codes >= 0] // 4)
@@ -354,8 +374,21 @@ class CuttingCompliance:
         A = self._matrix(elements, near)
         g, a = np.isin(near, gained, invert=True), np.isin(near, gained)
         E, D = A[np.ix_(g, a)], A[np.ix_(a, a)]
-        C_gg = self._columns(near[g])
-        self._add_factor(-np.linalg.inv(D - E.T @ C_gg @ E), L=E, units=gained)
+        C_gg = self._corrected_columns(near[g], *corrected) if corrected is not None and self.blas \
+            and np.isin(near[g], corrected[0]).all() else self._columns(near[g])
+        self._add_factor(-_symmetric(np.linalg.inv(_symmetric(D - E.T @ C_gg @ E))), L=E, units=gained)
+
+    def _corrected_columns(self, dofs: np.ndarray, gathered: np.ndarray, w: int) -> np.ndarray:
+        """As _columns(dofs) (CPU), where `dofs` are among the rows last gathered (at the sorted
+        `gathered`) and the only change since is the last factor pair, of rank w: the rows of
+        C − T Uᵀ are those rows less T[dofs] U_wᵀ, n k w multiply-adds instead of a gather's
+        n k (rank + 1) reading C (the new nodes' neighbours are among the correction's dofs)."""
+        n, r1 = self.n_dofs, self.rank
+        r0 = r1 - w
+        rows = self._rows[np.searchsorted(gathered, dofs), :n] - self._T[dofs, r0:r1] @ self._U[:n, r0:r1].T
+        self._rows[:len(dofs), :n] = rows
+        self._gathered = len(dofs)
+        return rows[:, dofs].copy()
 
     def _columns(self, dofs: np.ndarray, block: bool = True) -> np.ndarray | None:
         """Gather the current C's columns at these dofs (into self._rows); returns Gᵀ C G if
@@ -365,16 +398,25 @@ class CuttingCompliance:
             shape = (max(k, 2 * self._rows.shape[0]), self.capacity)
             self._rows = np.zeros(shape) if self.blas else ti.ndarray(ti.f64, shape)
         self._gathered = k
-        if self.blas:
-            _host_gather(self._C, self._T, self._U, self.rank, self._free, dofs, self.n_dofs, self._rows)
-            return self._rows[:k, dofs].copy() if block else None
-        if block and self._block.shape[0] < k:
+        if block and not self.blas and self._block.shape[0] < k:
             self._block = ti.ndarray(ti.f64, (max(k, 2 * self._block.shape[0]),) * 2)
+        self._gather_rows(dofs, self._rows, block)
+        if self.blas:
+            return self._rows[:k, dofs].copy() if block else None
+        return self._block.to_numpy()[:k, :k] if block else None
+
+    def _gather_rows(self, dofs: np.ndarray, out, block: bool = False) -> None:
+        """out[:k] = the rows (C symmetric: the columns) of the current C at these dofs, up to 3
+        nodes: numpy's BLAS into a numpy array, else the kernel into an ndarray (and self._block =
+        Gᵀ C G if `block`)."""
+        k = len(dofs)
+        if self.blas:
+            _host_gather(self._C, self._T, self._U, self.rank, self._free, dofs, self.n_dofs, out)
+            return
         cols = np.zeros(max(k, 1), dtype=np.int32)     # never empty: Taichi takes no empty array
         cols[:k] = dofs
-        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, self._rows, self._block,
+        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, out, self._block,
                 k if block else 0)
-        return self._block.to_numpy()[:k, :k] if block else None
 
     def _add_factor(self, X: np.ndarray, L: np.ndarray | None = None, units: np.ndarray | None = None) -> None:
         """Append U = (the gathered columns) L − I[:, units], T = U X to the factors."""
@@ -416,6 +458,14 @@ class CuttingCompliance:
         if self.blas:
             return self._rows[:len(dofs), :self.n_dofs].copy()
         return self._rows.to_numpy()[:len(dofs), :self.n_dofs]
+
+    def rows_into(self, dofs, out) -> None:
+        """These rows of the current C, without forming it, into the first len(dofs) rows of
+        `out`, a float64 ndarray (≥ len(dofs), capacity) (the contact kernels read it); its columns
+        past 3 nodes are left as they are."""
+        self.update()
+        dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
+        self._gather_rows(dofs, host_view(out) if self.blas else out)
 
     def dense(self) -> np.ndarray:
         """The whole current C (3 nodes × 3 nodes), from its rows (lazy factors kept)."""

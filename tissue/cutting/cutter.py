@@ -274,7 +274,7 @@ class Cutter:
             decided = np.zeros(inverse.max() + 1)
             np.add.at(decided, inverse, np.repeat(np.where(centred, 0, side), 4))
             vote = np.sign(decided[inverse].reshape(-1, 4).sum(axis=1))[centred]
-            centre = self.surface.distances(x[tets[centred]].mean(axis=1))[1]
+            centre = self.surface.distances_near(x[tets[centred]].mean(axis=1), self.spacing)[1]
             side[centred] = np.where(vote != 0, vote, centre)
         owner_side = np.repeat(side, 4)
         zero = (s[:, _TRIPLES] == 0).all(axis=2).reshape(-1) & (owner_side != 0)
@@ -291,7 +291,7 @@ class Cutter:
         normal *= (self.spacing / np.linalg.norm(normal, axis=1))[:, None]
         centre = p.mean(axis=1)
         t, _ = self.surface.crossings(centre - normal, centre + normal)
-        return [face_key(k) for k in keys[np.isfinite(t)]]
+        return list(map(tuple, keys[np.isfinite(t)].tolist()))         # (rows sorted: their face keys)
 
 
 def _boxes_meeting(x: np.ndarray, tets: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -64,7 +64,7 @@ def duplications(model, pending: set) -> tuple[np.ndarray, np.ndarray, np.ndarra
             for face in model.tets[e][OUTWARD_FACES].tolist():
                 if u not in face:
                     continue
-                key = face_key(face)
+                key = tuple(sorted(face))          # (face_key of Python ints)
                 if key in pending:
                     continue
                 if key in owner:

@@ -150,6 +150,18 @@ class CutSurface:
         return distance[rows, nearest], np.where(plane[rows, nearest] >= 0, 1.0, -1.0), ids[nearest]
 
 
+    def distances_near(self, points: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As distances(points), against the triangles whose boxes come within `reach` of the
+        points' box: exact for the points found within `reach` (a nearer triangle would be among
+        them), the others measured again against all."""
+        distance, side, nearest = self.distances(points, self.near(points.min(axis=0) - reach,
+                                                                   points.max(axis=0) + reach))
+        far = distance > reach
+        if far.any():
+            distance[far], side[far], nearest[far] = self.distances(points[far])
+        return distance, side, nearest
+
+
 def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Σ over the first axis (3 coordinates) of u v."""
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
