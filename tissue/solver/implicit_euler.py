@@ -695,10 +695,10 @@ def _report(k: ti.template()):
 
 
 def _multigrid(k, o, *_) -> bool:
-    """A step kernel's instance with the multigrid V-cycle inlined: large enough that Taichi's IR
-    passes take minutes to compile it (the serial step: ~30x the compile time without them) for
-    12-16 % of its step time; the other schemes' kernels compile in seconds with them, and the
-    parallel ones step up to a third faster (python -m bench.compile_options)."""
+    """A step kernel's instance with the multigrid V-cycle inlined: where Taichi's IR passes, chosen
+    per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (the
+    serial step: 10 -> 153 CPU s of compiling, for a step a few % faster; the parallel kernels:
+    2.5x, for no faster step) and seconds on the other schemes' (bench/results/compile_options_liver19k.json)."""
     return o.preconditioner == "multigrid"
 
 
