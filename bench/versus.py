@@ -28,7 +28,7 @@ from bench.common import alternate_with_commit, machine, print_machine, write_re
 
 # Runs inside a checkout: the API used here is common to the commits compared.
 CHILD = r"""
-import json, sys
+import json, sys, time
 from tissue import backend
 backend.init("cpu")
 from bench.common import time_steps
@@ -39,8 +39,10 @@ for label, mesh, fixed, gravity, _ in meshes(quick):
     if mesh.n_tets > 300_000:
         continue
     solver = make_solver(mesh, fixed, gravity)
+    cpu = time.process_time()
     t = time_steps(solver.step, steps_for(mesh.n_tets))
-    rows.append(dict(mesh=label, tets=mesh.n_tets, ms=t["median_ms"]))
+    cpu_ms = 1e3 * (time.process_time() - cpu) / (t["samples"] + 3)   # all threads, warm-up included
+    rows.append(dict(mesh=label, tets=mesh.n_tets, ms=t["median_ms"], cpu_ms=cpu_ms))
 print("RESULT " + json.dumps(rows))
 """
 
@@ -61,6 +63,7 @@ def main(argv=None) -> None:
                         "the last before the compile-once engine)")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="the three small livers only")
+    parser.add_argument("--out", default="versus", help="the JSON's name under bench/results")
     args = parser.parse_args(argv)
 
     from tissue import backend
@@ -75,10 +78,13 @@ def main(argv=None) -> None:
     for i, row in enumerate(runs["this"][0]):
         this = float(np.median([run[i]["ms"] for run in runs["this"]]))
         that = float(np.median([run[i]["ms"] for run in runs["other"]]))
+        cpu = {name: float(np.median([run[i]["cpu_ms"] for run in runs[name]])) for name in runs}
         rows.append(dict(mesh=row["mesh"], tets=row["tets"], this_ms=round(this, 4), other_ms=round(that, 4),
-                         ratio=round(this / that, 3)))
-        print(f"{row['mesh']:>22}: this {this:8.3f} ms, {other} {that:8.3f} ms, ratio {this / that:5.2f}")
-    write_results("versus", dict(machine=info, other=other, rounds=args.rounds, quick=args.quick, meshes=rows))
+                         ratio=round(this / that, 3), this_cpu_ms=round(cpu["this"], 4),
+                         other_cpu_ms=round(cpu["other"], 4)))
+        print(f"{row['mesh']:>22}: this {this:8.3f} ms, {other} {that:8.3f} ms, ratio {this / that:5.2f}"
+              f"   CPU ms (mean, all threads) {cpu['this']:8.3f} / {cpu['other']:8.3f}")
+    write_results(args.out, dict(machine=info, other=other, rounds=args.rounds, quick=args.quick, meshes=rows))
 
 
 if __name__ == "__main__":

@@ -7,11 +7,14 @@ import sys
 import pytest
 
 CODE = ("import taichi as ti\nfrom tissue import backend\nbackend.init('cpu')\n"
-        "print('PASSES', ti.lang.impl.current_cfg().advanced_optimization)\n"
+        "from tissue import compilation\n"
+        "print('PASSES', ti.lang.impl.current_cfg().advanced_optimization, compilation._per_kernel)\n"
         "print('CACHE', ti.lang.impl.current_cfg().offline_cache_max_size_of_files == backend.OFFLINE_CACHE_BYTES)\n")
 
 
-@pytest.mark.parametrize("value, expected", [(None, "False"), ("0", "False"), ("1", "True")])
+# Taichi's process-wide setting, and whether kernels marked without_ir_passes are compiled without
+@pytest.mark.parametrize("value, expected", [(None, "False False"), ("auto", "True True"), ("0", "False False"),
+                                             ("1", "True False")])
 def test_advanced_optimization_follows_the_environment(value, expected):
     env = {k: v for k, v in os.environ.items() if k != "TISSUE_ADVANCED_OPTIMIZATION"}
     if value is not None:
@@ -23,4 +26,4 @@ def test_advanced_optimization_follows_the_environment(value, expected):
 def test_a_bad_value_is_named():
     env = dict(os.environ, TISSUE_ADVANCED_OPTIMIZATION="yes")
     done = subprocess.run([sys.executable, "-c", CODE], env=env, capture_output=True, text=True, timeout=120)
-    assert done.returncode != 0 and "TISSUE_ADVANCED_OPTIMIZATION: expected 0 or 1, got 'yes'" in done.stderr
+    assert done.returncode != 0 and "TISSUE_ADVANCED_OPTIMIZATION: expected auto, 0 or 1, got 'yes'" in done.stderr

@@ -25,6 +25,8 @@ def test_first_launch_of_each_instance_is_counted_and_timed(backend):
     fill(1.0)
     first = compilation.snapshot() - start
     assert first.count == 1 and first.seconds > 0
+    assert compilation.seconds_by_kernel()["fill"] == pytest.approx(first.ir_seconds)   # its only instance
+    assert 0 < compilation.seconds_by_kernel(cpu=True)["fill"]
     fill(2.0)
     assert compilation.snapshot() - start == first          # same instance: nothing compiled
     shift(1)

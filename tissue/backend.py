@@ -5,9 +5,11 @@ Nothing initialises Taichi at import time. `init()` reads its arguments, else th
 (auto arch = CUDA when present, else CPU; float64).
 
 Taichi's own IR optimisation passes (`advanced_optimization`) are off unless
-`TISSUE_ADVANCED_OPTIMIZATION=1`: LLVM optimises the kernels either way, and the passes cost
-about ten times the CPU time of compiling the serial step kernel while buying no faster step
-(`python -m bench.compile_options`, bench/results/compile_options.json).
+`TISSUE_ADVANCED_OPTIMIZATION` says otherwise: `1` runs them on every kernel, `auto` per kernel
+(on, except for the kernel instances marked `compilation.without_ir_passes`: the step kernels of
+multigrid schemes, where they cost minutes). LLVM optimises every kernel either way. Off is the
+default because, measured, no kernel of the scenes steps enough faster with them to pay their
+compile time (`python -m bench.compile_options`, bench/results/compile_options*.json).
 
 Taichi's offline cache keeps at most 1 GiB (`OFFLINE_CACHE_BYTES`; Taichi's default is 100 MB and
 evicts the least recently used quarter when full): one scene's serial step kernel alone is 7-10 MB,
@@ -54,11 +56,15 @@ def _resolve_arch(name: str):
     return {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan}[name]
 
 
-def _advanced_optimization() -> bool:
-    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "0")
-    if value not in ("0", "1"):
-        raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected 0 or 1, got {value!r}")
-    return value == "1"
+PASSES = ("auto", "0", "1")
+
+
+def ir_passes() -> str:
+    """TISSUE_ADVANCED_OPTIMIZATION: 0 (no kernel, the default), auto (per kernel) or 1 (every kernel)."""
+    value = os.environ.get("TISSUE_ADVANCED_OPTIMIZATION", "0").lower()
+    if value not in PASSES:
+        raise TissueError(f"TISSUE_ADVANCED_OPTIMIZATION: expected auto, 0 or 1, got {value!r}")
+    return value
 
 
 def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Backend:
@@ -77,11 +83,13 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
         return _current
     if _current is not None:
         ti.reset()
+    passes = ir_passes()
     wanted = _resolve_arch(arch)
     fp = ti.f64 if precision == "f64" else ti.f32
     ti.init(arch=wanted, default_fp=fp, default_ip=ti.i32, offline_cache=True,
-            offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, advanced_optimization=_advanced_optimization(), log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
-    compilation.install()
+            offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, advanced_optimization=passes != "0",
+            log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
+    compilation.install(per_kernel=passes == "auto")
     frontend.install()
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:

@@ -230,8 +230,10 @@ def cmd_info(args) -> int:
     print(f"precision  {be.precision}")
     import taichi as ti
 
-    passes = "on" if ti.lang.impl.current_cfg().advanced_optimization else "off"
-    print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=1|0)")
+    from .backend import ir_passes
+
+    passes = {"auto": "per kernel (off for the multigrid step kernels)", "1": "on", "0": "off"}[ir_passes()]
+    print(f"IR passes  {passes} (Taichi's advanced_optimization; TISSUE_ADVANCED_OPTIMIZATION=0|auto|1)")
     cfg = ti.lang.impl.current_cfg()
     print(f"cache      {cfg.offline_cache_file_path} (Taichi's offline cache, at most "
           f"{cfg.offline_cache_max_size_of_files >> 20} MiB)")

@@ -14,13 +14,22 @@ generation). Process-wide totals:
     compilation.snapshot()                       the same with the split (`.ir_seconds`: source to
                                                  IR to module; `.machine_code_seconds`: first launches)
     start = compilation.snapshot(); ...; compilation.snapshot() - start   the share of a region
+    compilation.seconds_by_kernel(cpu=False)     the first two parts per kernel function, wall or
+                                                 the process's CPU seconds (what load does not inflate)
 
 Not counted: the SNode trees' own compilation (fields).
+
+Taichi's IR passes (`advanced_optimization`) per kernel: Taichi reads the compile config when it
+compiles a kernel, and hashes it into the kernel's cache key, which it keeps on the kernel object
+and reuses at every later launch. So `install(per_kernel=True)` compiles the kernel instances
+marked by `without_ir_passes` with the passes off, the others with the process's setting, and each
+keeps what it was compiled with, in memory and in the offline cache (keys differ by the setting).
 """
 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from taichi.lang import impl
@@ -32,6 +41,9 @@ _count = 0
 _not_yet_launched: set[int] = set()       # ids of kernel instances compiled and not launched yet
 _original_materialize = Kernel.materialize
 _original_launch = Kernel.launch_kernel
+_by_kernel: dict[str, list[float]] = {}   # [wall, CPU] seconds per kernel function, over its instances
+_per_kernel = False
+_without_passes: dict = {}                # Taichi Kernel -> which instances (by their arguments) compile without
 
 
 @dataclass(frozen=True)
@@ -57,16 +69,46 @@ def _materialize(self, key=None, args=None, arg_features=None):
         return _original_materialize(self, key, args, arg_features)
     self.runtime.materialize()                  # pending fields first: not kernel compilation
     before = len(self.compiled_kernels)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     _original_materialize(self, key, args, arg_features)
     if len(self.compiled_kernels) == before:    # key=None named an instance compiled already
         return
     kernel = next(reversed(self.compiled_kernels.values()))   # the one just added
     prog = impl.get_runtime().prog
-    prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel)
-    _ir_seconds += time.perf_counter() - start
+    with _passes_for(self, args):
+        prog.compile_kernel(prog.config(), prog.get_device_caps(), kernel)
+    elapsed = time.perf_counter() - start
+    _ir_seconds += elapsed
     _count += 1
     _not_yet_launched.add(id(kernel))
+    totals = _by_kernel.setdefault(self.func.__name__, [0.0, 0.0])
+    totals[0] += elapsed
+    totals[1] += time.process_time() - cpu
+
+
+@contextmanager
+def _passes_for(kernel: Kernel, args):
+    """The process's compile config, with the IR passes off while a marked kernel instance compiles."""
+    config = impl.current_cfg()
+    when = _without_passes.get(kernel)
+    if not (_per_kernel and config.advanced_optimization and when is not None and when(*args)):
+        yield
+        return
+    config.advanced_optimization = False
+    try:
+        yield
+    finally:
+        config.advanced_optimization = True
+
+
+def without_ir_passes(when=lambda *args: True):
+    """A decorator (above `@ti.kernel`): compile the kernel's instances for which `when(*arguments of
+    the launch)` holds without Taichi's IR passes, when the passes are chosen per kernel. For kernels
+    so large that the passes cost minutes."""
+    def mark(kernel):
+        _without_passes[kernel._primal] = when
+        return kernel
+    return mark
 
 
 def _launch_kernel(self, t_kernel, *args):
@@ -81,8 +123,11 @@ def _launch_kernel(self, t_kernel, *args):
     return result
 
 
-def install() -> None:
-    """Start counting (idempotent)."""
+def install(per_kernel: bool | None = None) -> None:
+    """Start counting (idempotent); `per_kernel`: honour `without_ir_passes` (None: as before)."""
+    global _per_kernel
+    if per_kernel is not None:
+        _per_kernel = per_kernel
     Kernel.materialize = _materialize
     Kernel.launch_kernel = _launch_kernel
 
@@ -95,6 +140,12 @@ def seconds() -> float:
 def count() -> int:
     """Kernel instances this process has compiled (a kernel compiled again after `ti.reset` counts again)."""
     return _count
+
+
+def seconds_by_kernel(cpu: bool = False) -> dict[str, float]:
+    """Seconds of source to module per kernel function name (all its instances) in this process:
+    wall, or CPU of the process (what a loaded machine does not inflate)."""
+    return {name: totals[1 if cpu else 0] for name, totals in _by_kernel.items()}
 
 
 def snapshot() -> Compiled:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import taichi as ti
 
-from .. import backend
+from .. import backend, compilation
 from ..errors import TissueError
 from ..fem import CorotationalFEM, assembled, corotational
 from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
@@ -694,11 +694,21 @@ def _report(k: ti.template()):
                       k.scalars[NONFINITE], ti.cast(k.inverted[0], float)])
 
 
+def _multigrid(k, o, *_) -> bool:
+    """A step kernel's instance with the multigrid V-cycle inlined: where Taichi's IR passes, chosen
+    per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (the
+    serial step: 10 -> 153 CPU s of compiling, for a step a few % faster; the parallel kernels:
+    2.5x, for no faster step) and seconds on the other schemes' (bench/results/compile_options_liver19k.json)."""
+    return o.preconditioner == "multigrid"
+
+
+@compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _begin_parallel(k: STEP, o: ti.template(), tol: ti.f64):
     _begin(k, o, tol)
 
 
+@compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _iterate_parallel(k: STEP, o: ti.template()):
     for _ in ti.static(range(o.unroll)):
@@ -711,6 +721,7 @@ def _end_parallel(k: STEP, o: ti.template()) -> ti.types.vector(6, float):
     return _report(k)
 
 
+@compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> ti.types.vector(6, float):
     """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
