@@ -13,6 +13,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 SCRIPT = """
 import sys
@@ -95,6 +96,7 @@ np.savez(sys.argv[1], **out)
 """
 
 
+@pytest.mark.slow   # compiles the serial step kernel with the passes: tens of seconds
 def test_steps_with_and_without_the_passes(tmp_path):
     """Three serial steps of the test beam (CG to 1e-12) with the passes per kernel (auto: the "none"
     scheme's step kernel compiles with them) against none: round-off apart (measured 5.2e-14 of
