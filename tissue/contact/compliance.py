@@ -114,104 +114,136 @@ def _row_translation(jds: ti.template(), value: ti.template(), o_count, o_ptr, i
     return G
 
 
-ROTATE, ASSEMBLE, FACTOR = 0, 1, 2     # what _delassus computes besides the nodal rotations and Hr
-
-
-@ti.kernel
-def _delassus(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
-              R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
-              U: ti.types.ndarray(),
-              ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(),
-              out: ti.types.ndarray(), P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32,
-              k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
-              mode: ti.template(), serial: ti.template()):
-    """One launch (parallel loops; on one thread for small bodies on the CPU): the nodal
-    rotations and kernel 1, Hr = H R (a 3×3 block each); then by `mode`
-      ASSEMBLE  Q among the touched dofs (Qt), U = Q Hrᵀ there, the rows' translations H T and
-                kernel 2: out (W) += h (Hr U + (H T)(H T)ᵀ / (c m));
-      FACTOR    the factors of W (tissue.contact.FactoredDelassus): Hr and H T into P at `pos`,
-                Q among the touched dofs into Qt (with the translation's block for a free body),
-                and W's diagonal blocks: out[block row] += h (Hr Q Hrᵀ + (H T)(H T)ᵀ / (c m))."""
-    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+@ti.func
+def _rotations_and_hr(Re: ti.template(), valence: ti.template(), incidence: ti.template(), R: ti.template(),
+                      hr: ti.template(), jds: ti.template(), value: ti.template(), o_node, nnz, tol,
+                      serial: ti.template()):
+    """The nodal rotations (every node: the correction reads them) and kernel 1, Hr = H R (a 3×3
+    block per JDS entry)."""
     ti.loop_config(serialize=serial)
-    for v in range(R.shape[0]):                     # nodal rotations (every node: the correction)
+    for v in range(R.shape[0]):
         R[v] = nodal_rotation(Re, valence, incidence, v, tol)
     ti.loop_config(serialize=serial)
-    for e in range(nnz):                            # kernel 1
+    for e in range(nnz):
         V = ti.Matrix.zero(float, 3, 3)
         for a, b in ti.static(ti.ndrange(3, 3)):
             V[a, b] = value[e, a, b]
         hr[e] = V @ R[jds[o_node + e]]
+
+
+@ti.func
+def _translations_and_gather(C0: ti.template(), rows: ti.template(), ht: ti.template(), Qt: ti.template(),
+                             jds: ti.template(), value: ti.template(), o_count, o_ptr, o_touched, n_active, d, ld,
+                             inverse_mass, serial: ti.template()):
+    """The rows' translations H T, and Q among the touched dofs gathered once (ld × ld, row-major;
+    a free body's factor adds the translation's block): a compact copy stays in cache where
+    scattered reads of the whole Q (3n × 3n, 10 MB for the liver) miss it."""
+    ti.loop_config(serialize=serial)
+    for i in range(n_active):
+        ht[i] = _row_translation(jds, value, o_count, o_ptr, i)
+    ti.loop_config(serialize=serial)
+    for a, m in ti.ndrange(ld, ld):
+        value_am = 0.0
+        if a < d and m < d:
+            value_am = C0[3 * rows[a // 3] + a % 3, 3 * jds[o_touched + m // 3] + m % 3]
+        elif a == m:
+            value_am = inverse_mass
+        Qt[a * ld + m] = value_am
+
+
+# One launch each (parallel loops; on one thread for small bodies on the CPU): _rotate for the
+# correction alone, _assemble to form W, _factor for W's factors.
+
+@ti.kernel
+def _rotate(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
+            R: ti.types.ndarray(), hr: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(),
+            n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, tol: float, serial: ti.template()):
+    """The nodal rotations and Hr, what the correction needs when W was neither formed nor factored."""
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+    _rotations_and_hr(Re, valence, incidence, R, hr, jds, value, o_node, nnz, tol, serial)
+
+
+@ti.kernel
+def _assemble(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
+              R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
+              U: ti.types.ndarray(), ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(),
+              Qt: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
+              n_touched: ti.i32, h: float, inverse_mass: float, tol: float, serial: ti.template()):
+    """The nodal rotations and Hr; H T and Q among the touched dofs (Qt); U = Q Hrᵀ there; and
+    kernel 2: W += h (Hr U + (H T)(H T)ᵀ / (c m))."""
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+    _rotations_and_hr(Re, valence, incidence, R, hr, jds, value, o_node, nnz, tol, serial)
     d = 3 * n_touched
-    ld = d                                          # Qt's row length: a free body's factor adds the translation
-    if ti.static(mode == FACTOR):
-        ld = d + (3 if inverse_mass != 0.0 else 0)
-    if ti.static(mode != ROTATE):
-        ti.loop_config(serialize=serial)
-        for i in range(n_active):
-            ht[i] = _row_translation(jds, value, o_count, o_ptr, i)
-        # Q among the touched dofs, gathered once (ld × ld, row-major): a compact copy stays in
-        # cache where scattered reads of the whole Q (3n × 3n, 10 MB for the liver) miss it.
-        ti.loop_config(serialize=serial)
-        for a, m in ti.ndrange(ld, ld):
-            value_am = 0.0
-            if a < d and m < d:
-                value_am = C0[3 * rows[a // 3] + a % 3, 3 * jds[o_touched + m // 3] + m % 3]
-            elif a == m:
-                value_am = inverse_mass
-            Qt[a * ld + m] = value_am
-    if ti.static(mode == ASSEMBLE):
-        # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
-        # fastest, so neighbouring threads read neighbouring entries of a row.
-        ti.loop_config(serialize=serial)
-        for i, m in ti.ndrange(n_active, d):
-            s = ti.Vector([0.0, 0.0, 0.0])
-            for l in range(jds[o_count + i]):
-                e = jds[o_ptr + l] + i
-                b = 3 * jds[o_local + e] * d + m
-                s += hr[e] @ ti.Vector([Qt[b], Qt[b + d], Qt[b + 2 * d]])
-            U[i * d + m] = s
-        # Kernel 2: the 3×3 block (i, j) of W is h U(i, j's dofs) Hr(j, ·)ᵀ; upper triangle, mirrored.
-        ti.loop_config(serialize=serial)
-        for i, j in ti.ndrange(n_active, n_active):
-            if j >= i:
-                B = ti.Matrix.zero(float, 3, 3)
-                for l in range(jds[o_count + j]):
-                    e = jds[o_ptr + l] + j
-                    a = i * d + 3 * jds[o_local + e]
-                    B += ti.Matrix.cols([U[a], U[a + 1], U[a + 2]]) @ hr[e].transpose()
-                if inverse_mass != 0.0:
-                    B += inverse_mass * ht[i] @ ht[j].transpose()
-                ri, rj = 3 * jds[i], 3 * jds[j]
-                for p, q in ti.static(ti.ndrange(3, 3)):
-                    out[ri + p, rj + q] = out[ri + p, rj + q] + h * B[p, q]
-                if i != j:
-                    for p, q in ti.static(ti.ndrange(3, 3)):
-                        out[rj + q, ri + p] = out[rj + q, ri + p] + h * B[p, q]
-    if ti.static(mode == FACTOR):
-        ti.loop_config(serialize=serial)
-        for i in range(n_active):
-            count = jds[o_count + i]
+    _translations_and_gather(C0, rows, ht, Qt, jds, value, o_count, o_ptr, o_touched, n_active, d, d,
+                             inverse_mass, serial)
+    # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
+    # fastest, so neighbouring threads read neighbouring entries of a row.
+    ti.loop_config(serialize=serial)
+    for i, m in ti.ndrange(n_active, d):
+        s = ti.Vector([0.0, 0.0, 0.0])
+        for l in range(jds[o_count + i]):
+            e = jds[o_ptr + l] + i
+            b = 3 * jds[o_local + e] * d + m
+            s += hr[e] @ ti.Vector([Qt[b], Qt[b + d], Qt[b + 2 * d]])
+        U[i * d + m] = s
+    # Kernel 2: the 3×3 block (i, j) of W is h U(i, j's dofs) Hr(j, ·)ᵀ; upper triangle, mirrored.
+    ti.loop_config(serialize=serial)
+    for i, j in ti.ndrange(n_active, n_active):
+        if j >= i:
             B = ti.Matrix.zero(float, 3, 3)
-            for l in range(count):
-                e = jds[o_ptr + l] + i
-                for c in ti.static(ti.ndrange(3, 3)):
-                    P[pos[e], c[0], c[1]] = hr[e][c[0], c[1]]
-                a = 3 * jds[o_local + e]
-                for l2 in range(count):
-                    f = jds[o_ptr + l2] + i
-                    b = 3 * jds[o_local + f]
-                    Qab = ti.Matrix.zero(float, 3, 3)
-                    for p, q in ti.static(ti.ndrange(3, 3)):
-                        Qab[p, q] = Qt[(a + p) * ld + b + q]
-                    B += hr[e] @ Qab @ hr[f].transpose()
+            for l in range(jds[o_count + j]):
+                e = jds[o_ptr + l] + j
+                a = i * d + 3 * jds[o_local + e]
+                B += ti.Matrix.cols([U[a], U[a + 1], U[a + 2]]) @ hr[e].transpose()
             if inverse_mass != 0.0:
-                for c in ti.static(ti.ndrange(3, 3)):
-                    P[pos[nnz + i], c[0], c[1]] = ht[i][c[0], c[1]]
-                B += inverse_mass * ht[i] @ ht[i].transpose()
-            row = jds[i]
+                B += inverse_mass * ht[i] @ ht[j].transpose()
+            ri, rj = 3 * jds[i], 3 * jds[j]
             for p, q in ti.static(ti.ndrange(3, 3)):
-                out[row, p, q] = out[row, p, q] + h * B[p, q]
+                W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
+            if i != j:
+                for p, q in ti.static(ti.ndrange(3, 3)):
+                    W[rj + q, ri + p] = W[rj + q, ri + p] + h * B[p, q]
+
+
+@ti.kernel
+def _factor(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
+            R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
+            ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(),
+            diagonal: ti.types.ndarray(), P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32,
+            k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
+            serial: ti.template()):
+    """The factors of W (tissue.contact.FactoredDelassus): Hr and H T into P at `pos`, Q among the
+    touched dofs into Qt (with the translation's block for a free body), and W's diagonal blocks:
+    diagonal[block row] += h (Hr Q Hrᵀ + (H T)(H T)ᵀ / (c m))."""
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
+    _rotations_and_hr(Re, valence, incidence, R, hr, jds, value, o_node, nnz, tol, serial)
+    d = 3 * n_touched
+    ld = d + (3 if inverse_mass != 0.0 else 0)      # Qt's row length
+    _translations_and_gather(C0, rows, ht, Qt, jds, value, o_count, o_ptr, o_touched, n_active, d, ld,
+                             inverse_mass, serial)
+    ti.loop_config(serialize=serial)
+    for i in range(n_active):
+        count = jds[o_count + i]
+        B = ti.Matrix.zero(float, 3, 3)
+        for l in range(count):
+            e = jds[o_ptr + l] + i
+            for c in ti.static(ti.ndrange(3, 3)):
+                P[pos[e], c[0], c[1]] = hr[e][c[0], c[1]]
+            a = 3 * jds[o_local + e]
+            for l2 in range(count):
+                f = jds[o_ptr + l2] + i
+                b = 3 * jds[o_local + f]
+                Qab = ti.Matrix.zero(float, 3, 3)
+                for p, q in ti.static(ti.ndrange(3, 3)):
+                    Qab[p, q] = Qt[(a + p) * ld + b + q]
+                B += hr[e] @ Qab @ hr[f].transpose()
+        if inverse_mass != 0.0:
+            for c in ti.static(ti.ndrange(3, 3)):
+                P[pos[nnz + i], c[0], c[1]] = ht[i][c[0], c[1]]
+            B += inverse_mass * ht[i] @ ht[i].transpose()
+        row = jds[i]
+        for p, q in ti.static(ti.ndrange(3, 3)):
+            diagonal[row, p, q] = diagonal[row, p, q] + h * B[p, q]
 
 
 @ti.kernel
@@ -290,7 +322,6 @@ class WarpedCompliance:
         self.source = None                  # a CuttingCompliance to read A₀⁻¹ from (follow)
         self._tol = solver.fem.rotation_tolerance
         self.storage = Storage()                              # this step's scratch: see prepare
-        self._none, self._no_pos = np.zeros((1, 3, 3), self._np), np.zeros(1, np.int32)
         self.jds, self._ready = None, False
         self.follow_edits()
 
@@ -403,27 +434,30 @@ class WarpedCompliance:
         translation of a free body."""
         return 3 * len(jds.touched) + 3 * self.free
 
-    def _run(self, mode, out, Qt=None, P=None, pos=None) -> None:
-        fem, jds = self.solver.fem, self.jds
-        none = self._none
-        _delassus(fem.R, *fem.model.gather_index(), self.R, self.C0, self.rows, self.hr, self.U, self.ht,
-                  jds.packed, jds.value, self._Qt if Qt is None else Qt, out, none if P is None else P,
-                  self._no_pos if pos is None else pos, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz,
-                  len(jds.touched), self.solver.dt, self.inverse_mass, self._tol, mode, self.serial)
-        self._ready = True
+    def _shape(self) -> tuple:
+        """The JDS's sizes, then the step size, the free body's inverse mass and the rotations' tolerance."""
+        jds = self.jds
+        return (jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), self.solver.dt, self.inverse_mass,
+                self._tol)
 
     def add_to(self, W: np.ndarray) -> None:
         """W (n_rows², the backend's float type) += h (H R) A₀⁻¹ (H R)ᵀ."""
-        if self.jds.n_active:
-            self._run(ASSEMBLE, W)
+        fem, jds = self.solver.fem, self.jds
+        if jds.n_active:
+            _assemble(fem.R, *fem.model.gather_index(), self.R, self.C0, self.rows, self.hr, self.U, self.ht,
+                      jds.packed, jds.value, self._Qt, W, *self._shape(), self.serial)
+            self._ready = True
 
     def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray) -> None:
         """This body's factors of W (tissue.contact.FactoredDelassus): P[pos[e]] = (H R) block of
         JDS entry e (and P[pos[nnz + i]] = (H T) of sorted block row i, free bodies), Q its
         compliance on the factor's dofs (factor_size(jds)² entries, row-major), and W's diagonal
         blocks += this body's part."""
-        if self.jds.n_active:
-            self._run(FACTOR, diagonal, Q, P, pos)
+        fem, jds = self.solver.fem, self.jds
+        if jds.n_active:
+            _factor(fem.R, *fem.model.gather_index(), self.R, self.C0, self.rows, self.hr, self.ht, jds.packed,
+                    jds.value, Q, diagonal, P, pos, *self._shape(), self.serial)
+            self._ready = True
 
     def correct(self, lam: np.ndarray) -> None:
         """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's arrays."""
@@ -431,7 +465,10 @@ class WarpedCompliance:
         if not jds.n_active:
             return
         if not self._ready:
-            self._run(ROTATE, self._none)
+            fem = self.solver.fem
+            _rotate(fem.R, *fem.model.gather_index(), self.R, self.hr, jds.packed, jds.value, jds.n_active,
+                    len(jds.jd_ptr) - 1, jds.nnz, self._tol, self.serial)
+            self._ready = True
         _correct(self.R, self.C0, self.rows, self.hr, self.r0, self.pushed, jds.packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
                  self.solver.x, self.solver.v, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched),
                  self.solver.dt, self.inverse_mass, self.serial)
