@@ -22,23 +22,27 @@ force.
 
 Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
 scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
-whatever else runs; it sleeps between ticks (spinning only the last SPIN s), so it takes a
-fraction of a core. Refused, it runs at normal priority (the log says which). With `cpu=k` it
-runs on core k only (os.sched_setaffinity; pin_process puts the simulation on the others): the
-two do not take each other's time slices, though other processes still may.
+whatever else runs. Refused, or not asked, it runs at normal priority with a short scheduling
+slice (tissue.haptics.timing: the woken loop then preempts the running task). It sleeps between
+ticks (spinning only the last tens of µs), so it takes a fraction of a core; how it waits, its
+garbage collector, its memory lock and timer slack are `tuning` (timing.Tuning). With `cpu=k`
+it runs on core k only (os.sched_setaffinity; pin_process puts the simulation on the others):
+the two do not take each other's time slices, though other processes still may.
 
 Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; the loop also ends
 when its parent process is gone (its parent id changes: checked every tick), and when no problem
 has come for `idle_timeout` s. A loop that died is reported by the simulation's next `publish` as
 a TissueError. The loop writes its log (every tick: clock, period, force, grip, contact force,
-sweeps, residual, step, solve time; and its CPU and wall seconds) to `log_path` as it ends,
-however it ends but SIGKILL.
+sweeps, residual, step, and where the tick's time went: LOG_COLUMNS; and its CPU and wall
+seconds, page faults, context switches) to `log_path` as it ends, however it ends but SIGKILL.
 """
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
+import resource
 import time
 import zlib
 from dataclasses import dataclass
@@ -48,11 +52,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import TissueError
+from . import timing
 from .instrument import DevicePose
 from .lcp import MAX_CONTACTS, MAX_JAWS, MAX_SWEEPS, TOLERANCE, HapticProblem
 
 HEADER = 3                     # int64: sequence, payload length, CRC-32
-SPIN = 6e-5                    # s: a tick spins this long before its deadline (the rest it sleeps)
 
 
 class TornRead(TissueError):
@@ -167,8 +171,13 @@ def unpack_pose(data: np.ndarray) -> DevicePose:
 
 # ---- the loop's process ----------------------------------------------------------------------------
 
+# Per tick: its clock and period (s), what it rendered, and where its time went (µs): late (woke
+# after its deadline by), load (a new step's problem: read, unpack, hand-over), device (read the
+# pose, write it for the simulation, send the force), solve (the re-solve and its Python), work
+# (the tick from wake to sleep) and its thread's CPU time (work - work_cpu: preempted), gc (the
+# cyclic collector inside the tick).
 LOG_COLUMNS = ("clock", "period", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "sweeps", "residual", "step",
-               "solve_us", "x", "y", "z")
+               "solve_us", "x", "y", "z", "late_us", "load_us", "device_us", "work_us", "work_cpu_us", "gc_us")
 
 
 @dataclass
@@ -186,11 +195,14 @@ class _Config:
     max_ticks: int
     realtime: bool
     cpu: int | None
+    tuning: timing.Tuning
 
 
 def pin_process(cores) -> set[int]:
     """Run every thread of this process (Taichi's workers included) on `cores` only; returns the
-    cores it was allowed before (Linux; elsewhere nothing changes and the set of all is returned)."""
+    cores it was allowed before (Linux; elsewhere nothing changes and the set of all is returned).
+    (On one core, run numpy with OPENBLAS_NUM_THREADS=1: OpenBLAS's second thread would spin
+    against the first on the same core; measured here, a 300×300 product 32 ms against 1.2.)"""
     if not hasattr(os, "sched_setaffinity"):
         return set(range(os.cpu_count() or 1))
     before = os.sched_getaffinity(0)
@@ -202,14 +214,23 @@ def pin_process(cores) -> set[int]:
     return before
 
 
-def _sleep_until(deadline: float) -> None:
-    """Sleep to SPIN s before the deadline, then spin (the scheduler wakes a sleeper late: tens of
-    µs at real-time priority; at normal priority on a loaded machine, a time slice of others)."""
-    left = deadline - time.perf_counter()
-    if left > SPIN:
-        time.sleep(left - SPIN)
-    while time.perf_counter() < deadline:
-        pass
+class _GcTimer:
+    """Seconds Python's cyclic collector ran since the last `take()` (gc.callbacks)."""
+
+    def __init__(self):
+        self.total, self.began = 0.0, None
+        gc.callbacks.append(self)
+
+    def __call__(self, phase, _info):
+        if phase == "start":
+            self.began = time.monotonic()
+        elif self.began is not None:
+            self.total += time.monotonic() - self.began
+            self.began = None
+
+    def take(self) -> float:
+        spent, self.total = self.total, 0.0
+        return spent
 
 
 def _run(config: _Config, epoch, ready, stop) -> None:
@@ -218,43 +239,39 @@ def _run(config: _Config, epoch, ready, stop) -> None:
     from .continuity import ContinuousForce
     from .lcp import HapticSolver
 
-    priority = "normal"
-    if config.realtime:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-            priority = "realtime (SCHED_FIFO 10)"
-        except (PermissionError, AttributeError, OSError):
-            priority = "normal (real-time priority refused)"
-    if config.cpu is not None:
-        try:
-            os.sched_setaffinity(0, {config.cpu})
-            priority += f", on core {config.cpu}"
-        except (AttributeError, OSError):
-            priority += f", core {config.cpu} refused"
     backend.init("cpu", "f64", cpu_max_num_threads=1)
-    resolve = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
-    resolve.warm()
-    solver = ContinuousForce(resolve, config.rate)
+    solver = ContinuousForce(HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance), config.rate)
+    solver.warm()
     problems = SharedRecord(0, name=config.problem_channel)
     poses = SharedRecord(0, name=config.pose_channel)
     device = config.device
-    log = np.full((config.max_ticks, len(LOG_COLUMNS)), np.nan)
+    log = np.full((config.max_ticks, len(LOG_COLUMNS)), np.nan)        # (np.full touches every page)
     ticks, loaded, reason = 0, -1, "stopped"
+    settings = timing.apply(config.tuning, config.realtime, config.cpu)
+    sleep_until = timing.sleeper(config.tuning)
+    gc_timer = _GcTimer()
+    clock, thread_time = time.monotonic, time.thread_time
     ready.set()
-    cpu, wall = time.process_time(), time.perf_counter()
+    cpu, wall = time.process_time(), clock()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
     try:
         while epoch.value == 0.0 and not stop.is_set():
             time.sleep(1e-3)
         period = 1.0 / config.rate
         start = epoch.value
-        next_tick, last_tick, last_problem = time.perf_counter(), None, time.perf_counter()
+        deadline, last_tick = clock(), None
+        last_problem = deadline
         while True:
+            now = clock()
             if stop.is_set():
                 break
             if os.getppid() != config.parent:
                 reason = "parent gone"
                 break
-            now = time.perf_counter()
+            work_cpu = thread_time()
+            row = log[ticks % config.max_ticks]
+            row[0], row[1] = now - start, np.nan if last_tick is None else now - last_tick
+            row[16] = 1e6 * (now - deadline)
             if problems.sequence != loaded:
                 got = problems.read()
                 if got is not None:
@@ -264,26 +281,34 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             elif now - last_problem > config.idle_timeout:
                 reason = "idle"
                 break
-            clock = time.monotonic() - start
-            pose = device.read(clock)
+            t0 = clock()
+            row[17] = 1e6 * (t0 - now)
+            pose = device.read(row[0])
             poses.write(pack_pose(pose, ticks))
-            row = log[ticks % config.max_ticks]
-            row[0], row[1] = clock, np.nan if last_tick is None else now - last_tick
             if solver.problem is not None:
-                t0 = time.perf_counter()
+                t1 = clock()
                 f = solver.solve(pose.position, pose.orientation, pose.jaw)
-                row[12] = 1e6 * (time.perf_counter() - t0)
-                device.send(clock, f.force, f.grip)
+                t2 = clock()
+                row[12] = 1e6 * (t2 - t1)
+                device.send(row[0], f.force, f.grip)
                 row[2:5], row[5], row[6:9] = f.force, f.grip, f.contact
                 row[9], row[10], row[11] = f.sweeps, f.residual, solver.problem.step
                 row[13:16] = pose.position
+                row[18] = 1e6 * ((t1 - t0) + (clock() - t2))
+            else:
+                row[18] = 1e6 * (clock() - t0)
+            row[21] = 1e6 * gc_timer.take()
+            row[20] = 1e6 * (thread_time() - work_cpu)
+            row[19] = 1e6 * (clock() - now)
             ticks += 1
             last_tick = now
-            next_tick += period
-            if next_tick < time.perf_counter() - period:     # far behind (a stall): no burst of ticks
-                next_tick = time.perf_counter()
-            _sleep_until(next_tick)
+            deadline += period
+            if deadline < clock() - period:     # far behind (a stall): no burst of ticks
+                deadline = clock()
+            sleep_until(deadline)
     finally:
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        cycles = gc.collect()                   # what the loop left for the collector (0: nothing leaked)
         kept = log[:min(ticks, config.max_ticks)] if ticks <= config.max_ticks else np.roll(
             log, -(ticks % config.max_ticks), axis=0)
         extra = {}
@@ -291,8 +316,11 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             extra["device_forces"] = device.forces()
         if config.log_path:
             np.savez(config.log_path, log=kept, columns=np.array(LOG_COLUMNS), ticks=ticks, reason=reason,
-                     retries=problems.retries, priority=priority, cpu_seconds=time.process_time() - cpu,
-                     wall_seconds=time.perf_counter() - wall, **extra)
+                     retries=problems.retries, priority=", ".join(settings),
+                     cpu_seconds=time.process_time() - cpu, wall_seconds=clock() - wall,
+                     minor_faults=after.ru_minflt - usage.ru_minflt, major_faults=after.ru_majflt - usage.ru_majflt,
+                     involuntary_switches=after.ru_nivcsw - usage.ru_nivcsw,
+                     voluntary_switches=after.ru_nvcsw - usage.ru_nvcsw, garbage_cycles=cycles, **extra)
         if hasattr(device, "close"):
             device.close()
         problems.close()
@@ -313,8 +341,8 @@ class HapticLoop:
 
     def __init__(self, device, rate: float = 1000.0, max_contacts: int = MAX_CONTACTS, max_sweeps: int = MAX_SWEEPS,
                  tolerance: float = TOLERANCE, log_path: str | os.PathLike | None = None,
-                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000, realtime: bool = False,
-                 cpu: int | None = None):
+                 idle_timeout: float = 60.0, max_ticks: int = 600_000, realtime: bool = False,
+                 cpu: int | None = None, tuning: timing.Tuning | None = None):
         if not (np.isfinite(rate) and 1.0 <= rate <= 20_000.0):
             raise TissueError(f"rate: must be between 1 and 20000 Hz, got {rate!r}")
         if not (idle_timeout > 0):
@@ -326,6 +354,7 @@ class HapticLoop:
             raise TissueError(f"cpu: must be a core number in 0..{(os.cpu_count() or 1) - 1}, got {cpu!r}")
         self.idle_timeout, self.max_ticks, self.realtime = float(idle_timeout), int(max_ticks), bool(realtime)
         self.cpu = cpu
+        self.tuning = timing.Tuning() if tuning is None else tuning
         self.process = None
         self.log = None
         self.published = 0
@@ -340,7 +369,7 @@ class HapticLoop:
         self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
         config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
                          self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks,
-                         self.realtime, self.cpu)
+                         self.realtime, self.cpu, self.tuning)
         self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
                                    name="tissue-haptics", daemon=True)
         self.process.start()
