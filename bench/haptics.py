@@ -102,6 +102,7 @@ def run(overrides, loop=None, pin=False):
     sim, layer = build(overrides)
     instrument = next(iter(layer.instruments.values()))
     load = [os.getloadavg()[0]]
+    stolen = steal()
     allowed = pin_process(SIM_CORES) if pin else None
     if loop is not None:
         loop.start()
@@ -133,7 +134,17 @@ def run(overrides, loop=None, pin=False):
         if allowed is not None:
             pin_process(allowed)
     load.append(os.getloadavg()[0])
+    load.append([int(b - a) for a, b in zip(stolen, steal())])
     return np.array(records), problems, end, load
+
+
+def steal() -> list[int]:
+    """Per core, the time the hypervisor ran something else on it (/proc/stat's steal, 10 ms
+    units): this machine is a virtual one, and no priority in it keeps its core then."""
+    try:
+        return [int(line.split()[8]) for line in open("/proc/stat") if line.startswith("cpu") and line[3].isdigit()]
+    except (OSError, IndexError, ValueError):
+        return []
 
 
 def resolve_times(problems) -> np.ndarray:
@@ -244,7 +255,7 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
                                   log_path=Path(tmp.name) / "loop.npz", **settings)
             records, problems, end, load = run(overrides, loop, pin=pin)
             steps[kind].append(records)
-            loads[kind].append(load)
+            loads[kind].append({"load_1min": load[:2], "steal_10ms_per_core": load[2]})
             ends[kind].append(end)
             if loop is None:
                 continue
@@ -256,7 +267,7 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
             lp = loop_stats(loops[kind][-1:])
             print(f"  {kind:>26} round {round_ + 1}: {lp['rate_hz']:.0f} Hz, p99 {lp['period_ms']['p99']:.3f}, "
                   f"max {lp['period_ms']['max']:.2f} ms, over 1.2 ms {lp['over_1.2ms_by_cause']}, "
-                  f"load {load[0]:.1f}-{load[1]:.1f}", flush=True)
+                  f"load {load[0]:.1f}-{load[1]:.1f}, steal {load[2]}", flush=True)
     records, problems, ticks, end = first
     pressed = records[:, 3] > 0
     sizes = np.array([p.n for p in problems])
@@ -287,7 +298,7 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
                                              for r, a in zip(runs, steps.get(base, runs))]}
         entry["clock_seconds"] = [float(e) for e in ends[kind]]      # of a 4 s grasp kept to real time
         result["step_ms"][kind] = entry
-    result["load_average_1min"] = {kind: v for kind, v in loads.items()}
+    result["load_and_steal"] = loads         # per run: 1-min load average before and after, steal per core
     publish = [np.concatenate([r[1:, 2] for r in steps[k]]) for k in loops]
     result["publish_ms_median"] = float(np.median(np.concatenate(publish))) if publish else 0.0
     if figure is not None:
