@@ -1,27 +1,32 @@
 """Haptics benchmark (paper §3.6-3.7): the haptic loop's rate and period jitter while the simulation
-runs the liver grasp, the time of one haptic re-solve, and the simulation's step time with and
-without the loop, in one run on this machine.
+runs the liver grasp, where long periods come from, the time of one haptic re-solve, and the
+simulation's step time with and without the loop, in one run on this machine.
 
 For each constraint band (about 50, 150 and 450 rows: the grasp scene with its contact sampling
 and alarm distance set to reach them), the scene runs in real time (a step starts when the clock
-reaches it; 40 ms steps) alone, with the haptic loop in its own process at 1 kHz (a scripted device
-on the scene's path; after each step the simulation publishes the restricted problem) at normal
-priority on any core, at normal priority pinned (the loop on core 1, the simulation on core 0),
-and pinned at real-time priority (SCHED_FIFO, when allowed), the four alternated ROUNDS times
-(this shared machine's load drifts from minute to minute; the 1-minute load average before and
-after each run is recorded). In every run the instrument follows the device at the clock (see
-run). The loop sleeps to 60 µs before each tick and spins the rest
-(tissue.haptics.loop), its per-tick work bounded by the re-solve's sweep cap. Reported: the
-loop's achieved rate and its tick periods (median, p99, max) while the simulation ran, the
-re-solve's time inside the loop (Python included) and alone on the same problems, the restricted
-problems' size, the simulation's step time (median) without and with the loop (pooled, and each
-round against the same round's run alone; the simulation on one Taichi thread), wall and CPU (the step's threads: the wall time adds
-the time slices other processes take), the publish's own time, and the loop's CPU time. The
-150-row band's first pinned normal-priority run gives figures/haptics_force.png: the force the
-device renders at the simulation's rate (held) and at the loop's.
+reaches it; 40 ms steps), in each kind (`kinds`): alone; with the haptic loop in its own process at
+1 kHz (a scripted device on the scene's path; after each step the simulation publishes the
+restricted problem) at normal priority on any core; alone pinned to core 0; and with the loop
+pinned to core 1 at real-time priority (SCHED_FIFO, when allowed), the simulation on core 0. In
+every run the instrument follows the device at the clock (see run). The loop's timing settings
+are tissue.haptics.timing's defaults; `--tuning` runs instead the ablation of each of them
+(`tuning_kinds`, bench/results/haptics_tuning.json).
 
-    python -m bench.haptics            # all three bands (~7 min on 2 cores)
-    python -m bench.haptics --quick    # the 150-row band only
+Reported per kind: the loop's achieved rate and its tick periods (median, p99, p99.9, max, a
+histogram) while the simulation ran; the periods over 1.2 and 3 ms by cause (the previous tick's
+work ran past the deadline: its load of a new problem, re-solve, device I/O, garbage collection
+or preemption; or the loop woke late: the scheduler); the worst ticks' split; the re-solve's time
+in the loop (Python included) and alone on the same problems; the loop's CPU share, page faults,
+context switches, what a final collection found; the simulation's step time, wall and CPU (the
+step's threads: the wall time adds the time slices other processes take), against the simulation
+alone pinned as it is; the publish's own time; per run the 1-minute load average before and after
+and each core's steal time (a virtual machine: the hypervisor takes a core whatever its priority).
+The 150-row band's real-time run gives figures/haptics_force.png: the force the device renders at
+the simulation's rate (held) and at the loop's.
+
+    python -m bench.haptics            # all three bands, one run of each kind (~2-3 min on 2 quiet cores)
+    python -m bench.haptics --quick    # the 450-row band only
+    python -m bench.haptics --tuning --bands 450 --rounds 2    # the timing knobs' ablation
 """
 
 import argparse
@@ -50,11 +55,11 @@ LOOP_CORE, SIM_CORES = 1, {0}
 
 def kinds():
     """name -> (loop settings or None for the simulation alone, simulation pinned to SIM_CORES).
-    The loop at normal priority, both processes on any core or each on its own (the loop on
-    LOOP_CORE), and pinned at real-time priority (SCHED_FIFO, when allowed)."""
-    return {"alone": (None, False), "alone pinned": (None, True),
-            "normal": ({}, False), "normal pinned": ({"cpu": LOOP_CORE}, True),
-            "realtime pinned": ({"cpu": LOOP_CORE, "realtime": True}, True)}
+    The loop at normal priority, both processes on any core; and the loop pinned to LOOP_CORE at
+    real-time priority (SCHED_FIFO, when allowed), the simulation on SIM_CORES; each against the
+    simulation alone, pinned or not as it is."""
+    return {"alone": (None, False), "normal": ({}, False),
+            "alone pinned": (None, True), "realtime pinned": ({"cpu": LOOP_CORE, "realtime": True}, True)}
 
 
 def tuning_kinds():
@@ -69,6 +74,7 @@ def tuning_kinds():
                 "memory not locked": default.changed(lock_memory=False),
                 "timer slack 50 µs": default.changed(timer_slack_ns=None),
                 "time.sleep": default.changed(absolute=False), "no slice": default.changed(slice_us=None),
+                "slice 500 µs": default.changed(slice_us=500.0),
                 "sleep only": default.changed(sleep="sleep"), "spin only": default.changed(sleep="spin")}
     out = {name: ({"tuning": t}, False) for name, t in variants.items()}
     out["realtime pinned"] = ({"cpu": LOOP_CORE, "realtime": True}, True)
@@ -216,6 +222,8 @@ def loop_stats(runs) -> dict:
                           "histogram_ms": _histogram(period)},
             **causes, "worst": worst_ticks(max(ticks, key=lambda t: np.nanmax(t[1:, 1]) if len(t) > 1 else 0)),
             "work_us": {"median": float(np.median(work)), "p99": float(np.percentile(work, 99))},
+            "split_us_median": {k: float(np.nanmedian(np.concatenate([t[:, COLUMN[k]] for t in ticks])))
+                                for k in ("late_us", "load_us", "device_us", "solve_us", "work_us", "work_cpu_us")},
             "resolve_us_in_loop": {"median": float(np.median(solving[:, 12])),
                                    "p99": float(np.percentile(solving[:, 12], 99))},
             "sweeps_median": float(np.median(solving[:, 9])), "sweeps_max": int(solving[:, 9].max()),
@@ -262,7 +270,7 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
             saved = loop.log
             tmp.cleanup()
             loops[kind].append((saved["log"], end, saved))
-            if first is None or (round_ == 0 and kind == "normal pinned"):
+            if first is None or (round_ == 0 and kind == "realtime pinned"):
                 first = (records, problems, saved["log"], end)
             lp = loop_stats(loops[kind][-1:])
             print(f"  {kind:>26} round {round_ + 1}: {lp['rate_hz']:.0f} Hz, p99 {lp['period_ms']['p99']:.3f}, "
