@@ -70,7 +70,7 @@ def tuning_kinds():
 
     default = Tuning()
     old = Tuning(absolute=False, collect_garbage=True, lock_memory=False, timer_slack_ns=None, slice_us=None)
-    variants = {"default": default, "6c0b578": old, "GC on": default.changed(collect_garbage=True),
+    variants = {"default": default, "timing of 6c0b578": old, "GC on": default.changed(collect_garbage=True),
                 "memory not locked": default.changed(lock_memory=False),
                 "timer slack 50 µs": default.changed(timer_slack_ns=None),
                 "time.sleep": default.changed(absolute=False), "no slice": default.changed(slice_us=None),
@@ -78,7 +78,7 @@ def tuning_kinds():
                 "sleep only": default.changed(sleep="sleep"), "spin only": default.changed(sleep="spin")}
     out = {name: ({"tuning": t}, False) for name, t in variants.items()}
     out["realtime pinned"] = ({"cpu": LOOP_CORE, "realtime": True}, True)
-    out["realtime pinned, 6c0b578"] = ({"cpu": LOOP_CORE, "realtime": True, "tuning": old}, True)
+    out["realtime pinned, timing of 6c0b578"] = ({"cpu": LOOP_CORE, "realtime": True, "tuning": old}, True)
     return out
 
 
