@@ -407,6 +407,23 @@ def _writer(name, count, seed):
     record.close()
 
 
+def test_shared_record_reads_the_last_whole_record_while_a_write_is_stalled():
+    """A writer preempted in the middle of a record (its slot's sequence odd, half its payload
+    written) does not hold the reader up: the reader gets the previous record, whole, at once."""
+    from tissue.haptics.loop import SLOTS, SharedRecord
+
+    record = SharedRecord(8)
+    assert record.read() is None
+    record.write(np.arange(4.0))
+    stalled = (record.written + 1) % SLOTS
+    record.headers[stalled][0] = 2 * (record.written + 1) - 1
+    record.payloads[stalled][:2] = -1.0
+    assert record.sequence == 1
+    sequence, data = record.read(attempts=1)
+    assert sequence == 1 and np.array_equal(data, np.arange(4.0))
+    record.close()
+
+
 def test_shared_record_is_never_torn_under_a_concurrent_writer():
     """Another process writes 3,000 records of 1,000-31,000 values as fast as it can while this
     one reads: every read is a whole record (its content is its number's, CRC checked), numbers

@@ -13,12 +13,15 @@ the device, writes its pose into a second SharedRecord (the simulation's next st
 the coupling's target), re-solves the newest problem for that pose and sends the force (a new
 step's correction blended in over a step: tissue.haptics.continuity).
 
-SharedRecord: a header (sequence, length, CRC-32) and a float64 payload in one shared-memory
-block, written under a sequence lock: the writer makes the sequence odd, writes the payload and
-its CRC, makes it even; a reader copies the payload between two reads of the sequence and keeps
-the copy only if both are the same even number (x86 keeps stores in order and loads in order).
-The reader checks the CRC too, so a torn record that slipped through would be an error, not a
-force.
+SharedRecord: two slots, each a header (sequence, length, CRC-32) and a float64 payload, in one
+shared-memory block, written in turn under a sequence lock: the writer makes the slot's sequence
+odd, writes the payload and its CRC, makes it even; a reader takes the slot with the newest even
+sequence, copies its payload and keeps the copy only if the sequence is still the same (x86 keeps
+stores in order and loads in order). The reader checks the CRC too, so a torn record that slipped
+through would be an error, not a force. Two slots, so that a writer preempted mid-write (at
+normal priority on a loaded machine: tens of ms) leaves the previous record whole for the
+reader: with one slot, the simulation's read of the device's pose once spun through 100,000
+tries of a write the loop had been preempted in.
 
 Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
 scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
@@ -56,7 +59,8 @@ from . import timing
 from .instrument import DevicePose
 from .lcp import MAX_CONTACTS, MAX_JAWS, MAX_SWEEPS, TOLERANCE, HapticProblem
 
-HEADER = 3                     # int64: sequence, payload length, CRC-32
+HEADER = 3                     # int64 per slot: sequence, payload length, CRC-32
+SLOTS = 2
 
 
 class TornRead(TissueError):
@@ -64,12 +68,12 @@ class TornRead(TissueError):
 
 
 class SharedRecord:
-    """A float64 record in shared memory under a sequence lock (see the module docstring)."""
+    """A float64 record in shared memory, two slots under sequence locks (see the module docstring)."""
 
     def __init__(self, capacity: int, name: str | None = None):
-        size = 8 * (HEADER + int(capacity))
+        slot = HEADER + int(capacity)
         if name is None:
-            self.shm = shared_memory.SharedMemory(create=True, size=size)
+            self.shm = shared_memory.SharedMemory(create=True, size=8 * SLOTS * slot)
             self.owner = True
         else:
             # (A spawned child shares its parent's resource tracker: attaching registers the name
@@ -77,43 +81,45 @@ class SharedRecord:
             self.shm = shared_memory.SharedMemory(name=name)
             self.owner = False
         self.name = self.shm.name
-        self.header = np.ndarray((HEADER,), np.int64, buffer=self.shm.buf)
-        self.payload = np.ndarray(((self.shm.size - 8 * HEADER) // 8,), np.float64, buffer=self.shm.buf,
-                                  offset=8 * HEADER)
+        slot = self.shm.size // (8 * SLOTS)
+        whole = np.ndarray((SLOTS, slot), np.int64, buffer=self.shm.buf)
+        self.headers = [whole[k, :HEADER] for k in range(SLOTS)]
+        self.payloads = [np.ndarray((slot - HEADER,), np.float64, buffer=self.shm.buf, offset=8 * (k * slot + HEADER))
+                         for k in range(SLOTS)]
         if self.owner:
-            self.header[:] = 0
-        self.retries = 0
+            whole[:, :HEADER] = 0
+        self.written, self.retries = 0, 0
 
     @property
     def sequence(self) -> int:
-        """The number of records written so far (odd/2 while one is being written)."""
-        return int(self.header[0]) // 2
+        """The number of records completely written so far."""
+        return max(int(h[0]) for h in self.headers) // 2
 
     def write(self, data: np.ndarray) -> None:
+        """(One writer per record.)"""
         data = np.ascontiguousarray(data, dtype=np.float64).ravel()
-        if len(data) > len(self.payload):
-            raise TissueError(f"haptics: a record of {len(data)} values exceeds the channel's {len(self.payload)}")
-        h = self.header
-        h[0] += 1
-        self.payload[:len(data)] = data
+        if len(data) > len(self.payloads[0]):
+            raise TissueError(f"haptics: a record of {len(data)} values exceeds the channel's {len(self.payloads[0])}")
+        self.written += 1
+        k = self.written % SLOTS
+        h = self.headers[k]
+        h[0] = 2 * self.written - 1
+        self.payloads[k][:len(data)] = data
         h[1] = len(data)
         h[2] = zlib.crc32(data)
-        h[0] += 1
+        h[0] = 2 * self.written
 
     def read(self, attempts: int = 1000):
         """(sequence, a copy of the payload) of the newest complete record; None if none was
-        written yet, or if a writer kept it busy through `attempts` tries (try again later)."""
-        h = self.header
+        written yet, or if the writer lapped every copy through `attempts` tries (try again later)."""
         for _ in range(attempts):
-            s = int(h[0])
+            s, k = max((int(h[0]), k) for k, h in enumerate(self.headers) if int(h[0]) % 2 == 0)
             if s == 0:
                 return None
-            if s % 2:
-                self.retries += 1
-                continue
+            h = self.headers[k]
             n, crc = int(h[1]), int(h[2])
-            data = self.payload[:n].copy()
-            if int(h[0]) != s:
+            data = self.payloads[k][:n].copy()
+            if int(h[0]) != s:                    # rewritten while we copied
                 self.retries += 1
                 continue
             if zlib.crc32(data) != crc:
@@ -122,7 +128,7 @@ class SharedRecord:
         return None
 
     def close(self) -> None:
-        self.header = self.payload = None
+        self.headers = self.payloads = None
         self.shm.close()
         if self.owner:
             self.shm.unlink()
@@ -280,7 +286,7 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             row[0], row[1] = now - start, np.nan if last_tick is None else now - last_tick
             row[16] = 1e6 * (now - deadline)
             if problems.sequence != loaded:
-                got = problems.read()
+                got = problems.read(attempts=2)     # (lapped by the writer: next tick)
                 if got is not None:
                     loaded, data = got
                     solver.load(unpack(data))
@@ -406,7 +412,7 @@ class HapticLoop:
 
     def _cleanup(self) -> None:
         for record in (getattr(self, "problems", None), getattr(self, "poses", None)):
-            if record is not None and record.header is not None:
+            if record is not None and record.headers is not None:
                 record.close()
         self.process = None
 
