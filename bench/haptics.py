@@ -26,7 +26,7 @@ the simulation's rate (held) and at the loop's.
 
     python -m bench.haptics            # all three bands, one run of each kind (~2-3 min on 2 quiet cores)
     python -m bench.haptics --quick    # the 450-row band only
-    python -m bench.haptics --tuning --bands 450 --rounds 2    # the timing knobs' ablation
+    python -m bench.haptics --tuning   # the timing knobs' ablation (~15 min under load 9)
 """
 
 import argparse
@@ -327,6 +327,7 @@ def main(argv=None) -> int:
                         help="the ablation of the loop's timing knobs instead (bench/results/haptics_tuning.json)")
     parser.add_argument("--rounds", type=int, default=1, help="runs of each kind per band, alternated")
     parser.add_argument("--bands", type=int, nargs="*", default=list(BANDS), help="rows wanted: 50 150 450")
+    parser.add_argument("--out", help="the results' name under bench/results (default haptics, or haptics_tuning)")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -370,7 +371,7 @@ def main(argv=None) -> int:
                          f"{100 * lp['cpu_fraction_of_a_core']:.0f} % of a core, work {lp['work_us']['median']:.0f} µs")
             print(text)
     results["seconds"] = time.perf_counter() - started
-    write_results("haptics_tuning" if args.tuning else "haptics", results)
+    write_results(args.out or ("haptics_tuning" if args.tuning else "haptics"), results)
     return 0
 
 
