@@ -36,9 +36,9 @@ import tempfile
 import time
 from pathlib import Path
 
-# One BLAS thread (set before numpy loads OpenBLAS; the haptic process inherits it): the simulation
-# pinned to one core with OpenBLAS's second thread spinning against the first stalled for seconds
-# between steps (the publish's products; measured: a 300×300 product 32 ms against 1.2 ms).
+# One BLAS thread unless told otherwise (set before numpy loads OpenBLAS; the haptic process
+# inherits it): pinned to one core, OpenBLAS's second thread would spin against the first (the
+# publish's products). bench/results/haptics_openblas2.json is a run with two.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
