@@ -303,8 +303,9 @@ def test_grasp_force_is_continuous_across_steps(backend):
     pull): at every simulation step's hand-over the haptic-rate force changes by no more than the
     device's motion in one tick can make it (tick_bound), and between hand-overs by that plus the
     step's correction spread over a step's ticks; the single-rate force, held between steps,
-    jumps by far more. Measured (400 tetrahedra): largest tick-to-tick change 0.017 N (median
-    0.8 mN), at a hand-over 0.010 N; the single-rate force's steps up to 0.41 N (median 0.026 N).
+    jumps by far more. Measured (400 tetrahedra, db0e900): largest tick-to-tick change 0.016 N, at
+    a hand-over 0.011 N; the single-rate force's steps up to 0.40 N. Of the 59 hand-overs, 44 came
+    at a step's first tick, 3 two or three ticks in, 12 at the cap (not converged in 8 re-solves).
     35 s here under load (5 jobs on 2 cores), compilation included."""
     from scenes.liver_grasp import LiverGrasp
     from tissue.scene import Simulation
@@ -328,7 +329,7 @@ def test_grasp_force_is_continuous_across_steps(backend):
     assert np.all(np.diff(fast[handover + 1, 14]) == 1)               # every step's problem rendered
     assert np.all(handover + 1 - n * np.arange(1, len(single)) < 8)   # within HANDOVER_SOLVES ticks
     within = np.setdiff1d(np.arange(len(jumps)), handover)
-    assert np.all(jumps[handover] <= bound[handover] + 1e-9)          # measured ≤ 0.64 × the bound
+    assert np.all(jumps[handover] <= bound[handover] + 1e-9)          # measured ≤ 0.69 × the bound
     assert np.all(raw[within] <= bound[within] + 1e-9)                # measured ≤ 0.80 ×
     correction = fast[:, 13].copy()                                   # each step's correction, per tick
     starts = np.r_[0, handover + 1]
@@ -337,7 +338,7 @@ def test_grasp_force_is_continuous_across_steps(backend):
     spread = correction[1:] / n
     assert np.all(jumps <= bound + spread + 1e-9)
     single_jumps = np.linalg.norm(np.diff(single[:, 1:4], axis=0), axis=1)
-    assert single_jumps.max() > 10 * jumps.max()                      # measured 0.41 N against 0.017 N
+    assert single_jumps.max() > 10 * jumps.max()                      # measured 0.40 N against 0.016 N
 
 
 # ----------------------------------------------------------------------------------------------
