@@ -102,7 +102,7 @@ def run(overrides, loop=None, pin=False):
     steps other contacts than another run that falls behind by less (a device read at the
     simulation's time instead leaves the loop's forces, at the clock, meaningless). Per step: (time, ms of
     sim.step, ms of publish, rows, force (3), grip, CPU ms of sim.step: all this process's
-    threads), the problems published, the clock at the end and the load averages (1 min) before
+    threads, ms slept before it), the problems published, the clock at the end and the load averages (1 min) before
     and after."""
     from tissue.haptics.loop import pin_process
 
@@ -123,9 +123,11 @@ def run(overrides, loop=None, pin=False):
     try:
         for k in range(sim.scene.steps):
             left = sim.time + sim.dt - clock()
+            slept = time.perf_counter()
             if left > 0:
                 time.sleep(left)
             a, cpu = time.perf_counter(), time.process_time()
+            slept = a - slept
             sim.step()
             b, cpu = time.perf_counter(), time.process_time() - cpu
             if loop is not None:
@@ -133,7 +135,7 @@ def run(overrides, loop=None, pin=False):
             c = time.perf_counter()
             rows = layer.stage.last.rows
             records.append((sim.time, 1e3 * (b - a), 1e3 * (c - b), 0 if rows is None else rows.n_rows,
-                            *instrument.coupling_force(), instrument.grip_force(), 1e3 * cpu))
+                            *instrument.coupling_force(), instrument.grip_force(), 1e3 * cpu, 1e3 * slept))
         end = clock()
     finally:
         if loop is not None:
@@ -308,6 +310,12 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
                            "paired_ratios": [float(np.median(r[1:, col]) / np.median(a[1:, col]))
                                              for r, a in zip(runs, steps.get(base, runs))]}
         entry["clock_seconds"] = [float(e) for e in ends[kind]]      # of a 4 s grasp kept to real time
+        # where each run's clock went: steps, publishes, sleeps to real time, the rest (reading the
+        # device's pose, bookkeeping); and its longest step
+        entry["clock_split_seconds"] = [{"steps": float(r[:, 1].sum() / 1e3), "publish": float(r[:, 2].sum() / 1e3),
+                                         "slept": float(r[:, 9].sum() / 1e3),
+                                         "rest": float(e - r[:, [1, 2, 9]].sum() / 1e3), "longest_step_ms": float(r[:, 1].max())}
+                                        for r, e in zip(runs, ends[kind])]
         result["step_ms"][kind] = entry
     result["load_and_steal"] = loads         # per run: 1-min load average before and after, steal per core
     publish = [np.concatenate([r[1:, 2] for r in steps[k]]) for k in loops]
