@@ -312,7 +312,8 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
         entry["clock_seconds"] = [float(e) for e in ends[kind]]      # of a 4 s grasp kept to real time
         # where each run's clock went: steps, publishes, sleeps to real time, the rest (reading the
         # device's pose, bookkeeping); and its longest step
-        entry["clock_split_seconds"] = [{"steps": float(r[:, 1].sum() / 1e3), "publish": float(r[:, 2].sum() / 1e3),
+        entry["clock_split_seconds"] = [{"steps": float(r[:, 1].sum() / 1e3), "steps_cpu": float(r[:, 8].sum() / 1e3),
+                                         "publish": float(r[:, 2].sum() / 1e3),
                                          "slept": float(r[:, 9].sum() / 1e3),
                                          "rest": float(e - r[:, [1, 2, 9]].sum() / 1e3), "longest_step_ms": float(r[:, 1].max())}
                                         for r, e in zip(runs, ends[kind])]
