@@ -26,7 +26,9 @@ what helped there.
 - slice_us: at normal priority, the thread's scheduling slice (sched_setattr's sched_runtime, read
   by Linux ≥ 6.12's EEVDF scheduler as the task's requested slice): a short slice gives the woken
   loop an earlier virtual deadline, so it preempts the running task instead of waiting for its
-  slice to end. No privilege is needed; older kernels ignore it.
+  slice to end. No privilege is needed; older kernels ignore it. Off by default: measured, 100 µs
+  (shorter than a tick's work) got the loop preempted inside its ticks (480-1,090 times a run
+  against 8-130 with the kernel's slice) for no better rate (bench/results/haptics_tuning.json).
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ class Tuning:
     collect_garbage: bool = False
     lock_memory: bool = True
     timer_slack_ns: int | None = 1
-    slice_us: float | None = 100.0
+    slice_us: float | None = None
 
     def __post_init__(self):
         if self.sleep not in ("hybrid", "sleep", "spin"):
