@@ -25,10 +25,10 @@ tries of a write the loop had been preempted in.
 
 Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
 scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
-whatever else runs. Refused, or not asked, it runs at normal priority with a short scheduling
-slice (tissue.haptics.timing: the woken loop then preempts the running task). It sleeps between
-ticks (spinning only the last tens of µs), so it takes a fraction of a core; how it waits, its
-garbage collector, its memory lock and timer slack are `tuning` (timing.Tuning). With `cpu=k`
+whatever else runs. Refused, or not asked, it runs at normal priority (on a loaded machine: late
+wake-ups, measured in bench/haptics). It sleeps between ticks (spinning only the last tens of
+µs), so it takes a fraction of a core; how it waits, its garbage collector, its memory lock,
+timer slack and scheduling slice are `tuning` (tissue.haptics.timing.Tuning). With `cpu=k`
 it runs on core k only (os.sched_setaffinity; pin_process puts the simulation on the others):
 the two do not take each other's time slices, though other processes still may.
 
