@@ -24,7 +24,7 @@ and each core's steal time (a virtual machine: the hypervisor takes a core whate
 The 150-row band's real-time run gives figures/haptics_force.png: the force the device renders at
 the simulation's rate (held) and at the loop's.
 
-    python -m bench.haptics            # all three bands, one run of each kind (4.5 min at load 10)
+    python -m bench.haptics            # all three bands, one run of each kind (3 min at load 4, 4.5 at load 10)
     python -m bench.haptics --quick    # the 450-row band only
     python -m bench.haptics --tuning   # the timing knobs' ablation (~15 min under load 9)
 """
