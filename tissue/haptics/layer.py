@@ -109,8 +109,10 @@ class Haptics(Options):
 STEP_COLUMNS = ("time", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "jaw_contacts", "jaw_sliding", "organ_force",
                 "obstacle_force")
 # (kx, ky, kz: the part of the force that is a step's correction still being blended in, N;
-# correction: Σ over the jaws of its size, N; tissue.haptics.continuity)
-TICK_COLUMNS = ("time", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "sweeps", "residual", "kx", "ky", "kz", "correction")
+# correction: Σ over the jaws of its size, N; step: the step whose problem the tick rendered, the
+# hand-over being the tick where it changes; tissue.haptics.continuity)
+TICK_COLUMNS = ("time", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "sweeps", "residual", "kx", "ky", "kz", "correction",
+                "step")
 SLIDING = 0.99           # a pressed contact slides when |λ_t| >= this × μ λ_n (Coulomb's cone, to the solver's tolerance)
 
 
@@ -149,7 +151,8 @@ class HapticsStage:
             pose = instrument.device(t)
             f = self.solver.solve(pose.position, pose.orientation, pose.jaw)
             self.ticks.append((t, *f.force, f.grip, *f.contact, f.sweeps, f.residual,
-                               *f.correction.sum(axis=0), np.linalg.norm(f.correction, axis=1).sum()))
+                               *f.correction.sum(axis=0), np.linalg.norm(f.correction, axis=1).sum(),
+                               self.solver.problem.step))
             sweeps = max(sweeps, f.sweeps)
         self._sweeps = sweeps
 

@@ -13,32 +13,39 @@ the device, writes its pose into a second SharedRecord (the simulation's next st
 the coupling's target), re-solves the newest problem for that pose and sends the force (a new
 step's correction blended in over a step: tissue.haptics.continuity).
 
-SharedRecord: a header (sequence, length, CRC-32) and a float64 payload in one shared-memory
-block, written under a sequence lock: the writer makes the sequence odd, writes the payload and
-its CRC, makes it even; a reader copies the payload between two reads of the sequence and keeps
-the copy only if both are the same even number (x86 keeps stores in order and loads in order).
-The reader checks the CRC too, so a torn record that slipped through would be an error, not a
-force.
+SharedRecord: two slots, each a header (sequence, length, CRC-32) and a float64 payload, in one
+shared-memory block, written in turn under a sequence lock: the writer makes the slot's sequence
+odd, writes the payload and its CRC, makes it even; a reader takes the slot with the newest even
+sequence, copies its payload and keeps the copy only if the sequence is still the same (x86 keeps
+stores in order and loads in order). The reader checks the CRC too, so a torn record that slipped
+through would be an error, not a force. Two slots, so that a writer preempted mid-write (at
+normal priority on a loaded machine: tens of ms) leaves the previous record whole for the
+reader: with one slot, the simulation's read of the device's pose once spun through 100,000
+tries of a write the loop had been preempted in.
 
 Priority. With `realtime=True` the loop asks for SCHED_FIFO (Linux, root or CAP_SYS_NICE): the
 scheduler then runs it as soon as its tick is due instead of sharing the core in time slices with
-whatever else runs; it sleeps between ticks (spinning only the last SPIN s), so it takes a
-fraction of a core. Refused, it runs at normal priority (the log says which). With `cpu=k` it
-runs on core k only (os.sched_setaffinity; pin_process puts the simulation on the others): the
-two do not take each other's time slices, though other processes still may.
+whatever else runs. Refused, or not asked, it runs at normal priority (on a loaded machine: late
+wake-ups, measured in bench/haptics). It sleeps between ticks (spinning only the last tens of
+µs), so it takes a fraction of a core; how it waits, its garbage collector, its memory lock,
+timer slack and scheduling slice are `tuning` (tissue.haptics.timing.Tuning). With `cpu=k`
+it runs on core k only (os.sched_setaffinity; pin_process puts the simulation on the others):
+the two do not take each other's time slices, though other processes still may.
 
 Ending. `stop()` (or leaving the `with` block) sets the stop event and joins; the loop also ends
 when its parent process is gone (its parent id changes: checked every tick), and when no problem
 has come for `idle_timeout` s. A loop that died is reported by the simulation's next `publish` as
 a TissueError. The loop writes its log (every tick: clock, period, force, grip, contact force,
-sweeps, residual, step, solve time; and its CPU and wall seconds) to `log_path` as it ends,
-however it ends but SIGKILL.
+sweeps, residual, step, and where the tick's time went: LOG_COLUMNS; and its CPU and wall
+seconds, page faults, context switches) to `log_path` as it ends, however it ends but SIGKILL.
 """
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
+import resource
 import time
 import zlib
 from dataclasses import dataclass
@@ -48,11 +55,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import TissueError
+from . import timing
 from .instrument import DevicePose
 from .lcp import MAX_CONTACTS, MAX_JAWS, MAX_SWEEPS, TOLERANCE, HapticProblem
 
-HEADER = 3                     # int64: sequence, payload length, CRC-32
-SPIN = 6e-5                    # s: a tick spins this long before its deadline (the rest it sleeps)
+HEADER = 3                     # int64 per slot: sequence, payload length, CRC-32
+SLOTS = 2
 
 
 class TornRead(TissueError):
@@ -60,12 +68,12 @@ class TornRead(TissueError):
 
 
 class SharedRecord:
-    """A float64 record in shared memory under a sequence lock (see the module docstring)."""
+    """A float64 record in shared memory, two slots under sequence locks (see the module docstring)."""
 
     def __init__(self, capacity: int, name: str | None = None):
-        size = 8 * (HEADER + int(capacity))
+        slot = HEADER + int(capacity)
         if name is None:
-            self.shm = shared_memory.SharedMemory(create=True, size=size)
+            self.shm = shared_memory.SharedMemory(create=True, size=8 * SLOTS * slot)
             self.owner = True
         else:
             # (A spawned child shares its parent's resource tracker: attaching registers the name
@@ -73,43 +81,45 @@ class SharedRecord:
             self.shm = shared_memory.SharedMemory(name=name)
             self.owner = False
         self.name = self.shm.name
-        self.header = np.ndarray((HEADER,), np.int64, buffer=self.shm.buf)
-        self.payload = np.ndarray(((self.shm.size - 8 * HEADER) // 8,), np.float64, buffer=self.shm.buf,
-                                  offset=8 * HEADER)
+        slot = self.shm.size // (8 * SLOTS)
+        whole = np.ndarray((SLOTS, slot), np.int64, buffer=self.shm.buf)
+        self.headers = [whole[k, :HEADER] for k in range(SLOTS)]
+        self.payloads = [np.ndarray((slot - HEADER,), np.float64, buffer=self.shm.buf, offset=8 * (k * slot + HEADER))
+                         for k in range(SLOTS)]
         if self.owner:
-            self.header[:] = 0
-        self.retries = 0
+            whole[:, :HEADER] = 0
+        self.written, self.retries = 0, 0
 
     @property
     def sequence(self) -> int:
-        """The number of records written so far (odd/2 while one is being written)."""
-        return int(self.header[0]) // 2
+        """The number of records completely written so far."""
+        return max(int(h[0]) for h in self.headers) // 2
 
     def write(self, data: np.ndarray) -> None:
+        """(One writer per record.)"""
         data = np.ascontiguousarray(data, dtype=np.float64).ravel()
-        if len(data) > len(self.payload):
-            raise TissueError(f"haptics: a record of {len(data)} values exceeds the channel's {len(self.payload)}")
-        h = self.header
-        h[0] += 1
-        self.payload[:len(data)] = data
+        if len(data) > len(self.payloads[0]):
+            raise TissueError(f"haptics: a record of {len(data)} values exceeds the channel's {len(self.payloads[0])}")
+        self.written += 1
+        k = self.written % SLOTS
+        h = self.headers[k]
+        h[0] = 2 * self.written - 1
+        self.payloads[k][:len(data)] = data
         h[1] = len(data)
         h[2] = zlib.crc32(data)
-        h[0] += 1
+        h[0] = 2 * self.written
 
     def read(self, attempts: int = 1000):
         """(sequence, a copy of the payload) of the newest complete record; None if none was
-        written yet, or if a writer kept it busy through `attempts` tries (try again later)."""
-        h = self.header
+        written yet, or if the writer lapped every copy through `attempts` tries (try again later)."""
         for _ in range(attempts):
-            s = int(h[0])
+            s, k = max((int(h[0]), k) for k, h in enumerate(self.headers) if int(h[0]) % 2 == 0)
             if s == 0:
                 return None
-            if s % 2:
-                self.retries += 1
-                continue
+            h = self.headers[k]
             n, crc = int(h[1]), int(h[2])
-            data = self.payload[:n].copy()
-            if int(h[0]) != s:
+            data = self.payloads[k][:n].copy()
+            if int(h[0]) != s:                    # rewritten while we copied
                 self.retries += 1
                 continue
             if zlib.crc32(data) != crc:
@@ -118,7 +128,7 @@ class SharedRecord:
         return None
 
     def close(self) -> None:
-        self.header = self.payload = None
+        self.headers = self.payloads = None
         self.shm.close()
         if self.owner:
             self.shm.unlink()
@@ -157,8 +167,14 @@ def unpack(data: np.ndarray) -> HapticProblem:
                          device_jaw=float(data[5]))
 
 
-def pack_pose(pose: DevicePose, ticks: int) -> np.ndarray:
-    return np.r_[pose.time, pose.position, pose.orientation.ravel(), pose.jaw, ticks]
+POSE_SIZE = 15                 # time, position (3), orientation (9), jaw, ticks
+
+
+def pack_pose(pose: DevicePose, ticks: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The pose as a record, into `out` if given (the loop reuses one: np.r_ costs ~10 µs a tick)."""
+    out = np.empty(POSE_SIZE) if out is None else out
+    out[0], out[1:4], out[4:13], out[13], out[14] = pose.time, pose.position, pose.orientation.ravel(), pose.jaw, ticks
+    return out
 
 
 def unpack_pose(data: np.ndarray) -> DevicePose:
@@ -167,8 +183,13 @@ def unpack_pose(data: np.ndarray) -> DevicePose:
 
 # ---- the loop's process ----------------------------------------------------------------------------
 
+# Per tick: its clock and period (s), what it rendered, and where its time went (µs): late (woke
+# after its deadline by), load (a new step's problem: read, unpack, hand-over), device (read the
+# pose, write it for the simulation, send the force), solve (the re-solve and its Python), work
+# (the tick from wake to sleep) and its thread's CPU time (work - work_cpu: preempted), gc (the
+# cyclic collector inside the tick).
 LOG_COLUMNS = ("clock", "period", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "sweeps", "residual", "step",
-               "solve_us", "x", "y", "z")
+               "solve_us", "x", "y", "z", "late_us", "load_us", "device_us", "work_us", "work_cpu_us", "gc_us")
 
 
 @dataclass
@@ -186,11 +207,14 @@ class _Config:
     max_ticks: int
     realtime: bool
     cpu: int | None
+    tuning: timing.Tuning
 
 
 def pin_process(cores) -> set[int]:
     """Run every thread of this process (Taichi's workers included) on `cores` only; returns the
-    cores it was allowed before (Linux; elsewhere nothing changes and the set of all is returned)."""
+    cores it was allowed before (Linux; elsewhere nothing changes and the set of all is returned).
+    (On one core, run numpy with OPENBLAS_NUM_THREADS=1: OpenBLAS's second thread would spin
+    against the first on the same core.)"""
     if not hasattr(os, "sched_setaffinity"):
         return set(range(os.cpu_count() or 1))
     before = os.sched_getaffinity(0)
@@ -202,14 +226,23 @@ def pin_process(cores) -> set[int]:
     return before
 
 
-def _sleep_until(deadline: float) -> None:
-    """Sleep to SPIN s before the deadline, then spin (the scheduler wakes a sleeper late: tens of
-    µs at real-time priority; at normal priority on a loaded machine, a time slice of others)."""
-    left = deadline - time.perf_counter()
-    if left > SPIN:
-        time.sleep(left - SPIN)
-    while time.perf_counter() < deadline:
-        pass
+class _GcTimer:
+    """Seconds Python's cyclic collector ran since the last `take()` (gc.callbacks)."""
+
+    def __init__(self):
+        self.total, self.began = 0.0, None
+        gc.callbacks.append(self)
+
+    def __call__(self, phase, _info):
+        if phase == "start":
+            self.began = time.monotonic()
+        elif self.began is not None:
+            self.total += time.monotonic() - self.began
+            self.began = None
+
+    def take(self) -> float:
+        spent, self.total = self.total, 0.0
+        return spent
 
 
 def _run(config: _Config, epoch, ready, stop) -> None:
@@ -218,45 +251,42 @@ def _run(config: _Config, epoch, ready, stop) -> None:
     from .continuity import ContinuousForce
     from .lcp import HapticSolver
 
-    priority = "normal"
-    if config.realtime:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
-            priority = "realtime (SCHED_FIFO 10)"
-        except (PermissionError, AttributeError, OSError):
-            priority = "normal (real-time priority refused)"
-    if config.cpu is not None:
-        try:
-            os.sched_setaffinity(0, {config.cpu})
-            priority += f", on core {config.cpu}"
-        except (AttributeError, OSError):
-            priority += f", core {config.cpu} refused"
     backend.init("cpu", "f64", cpu_max_num_threads=1)
-    resolve = HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance)
-    resolve.warm()
-    solver = ContinuousForce(resolve, config.rate)
+    solver = ContinuousForce(HapticSolver(config.max_contacts, config.max_sweeps, config.tolerance), config.rate)
+    solver.warm()
     problems = SharedRecord(0, name=config.problem_channel)
     poses = SharedRecord(0, name=config.pose_channel)
     device = config.device
-    log = np.full((config.max_ticks, len(LOG_COLUMNS)), np.nan)
+    log = np.full((config.max_ticks, len(LOG_COLUMNS)), np.nan)        # (np.full touches every page)
+    pose_record = np.zeros(POSE_SIZE)
     ticks, loaded, reason = 0, -1, "stopped"
+    settings = timing.apply(config.tuning, config.realtime, config.cpu)
+    sleep_until = timing.sleeper(config.tuning)
+    gc_timer = _GcTimer()
+    clock, thread_time = time.monotonic, time.thread_time
     ready.set()
-    cpu, wall = time.process_time(), time.perf_counter()
+    cpu, wall = time.process_time(), clock()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
     try:
         while epoch.value == 0.0 and not stop.is_set():
             time.sleep(1e-3)
         period = 1.0 / config.rate
         start = epoch.value
-        next_tick, last_tick, last_problem = time.perf_counter(), None, time.perf_counter()
+        deadline, last_tick = clock(), None
+        last_problem = deadline
         while True:
+            now = clock()
             if stop.is_set():
                 break
             if os.getppid() != config.parent:
                 reason = "parent gone"
                 break
-            now = time.perf_counter()
+            work_cpu = thread_time()
+            row = log[ticks % config.max_ticks]
+            row[0], row[1] = now - start, np.nan if last_tick is None else now - last_tick
+            row[16] = 1e6 * (now - deadline)
             if problems.sequence != loaded:
-                got = problems.read()
+                got = problems.read(attempts=2)     # (lapped by the writer: next tick)
                 if got is not None:
                     loaded, data = got
                     solver.load(unpack(data))
@@ -264,26 +294,34 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             elif now - last_problem > config.idle_timeout:
                 reason = "idle"
                 break
-            clock = time.monotonic() - start
-            pose = device.read(clock)
-            poses.write(pack_pose(pose, ticks))
-            row = log[ticks % config.max_ticks]
-            row[0], row[1] = clock, np.nan if last_tick is None else now - last_tick
+            t0 = clock()
+            row[17] = 1e6 * (t0 - now)
+            pose = device.read(row[0])
+            poses.write(pack_pose(pose, ticks, pose_record))
             if solver.problem is not None:
-                t0 = time.perf_counter()
+                t1 = clock()
                 f = solver.solve(pose.position, pose.orientation, pose.jaw)
-                row[12] = 1e6 * (time.perf_counter() - t0)
-                device.send(clock, f.force, f.grip)
+                t2 = clock()
+                row[12] = 1e6 * (t2 - t1)
+                device.send(row[0], f.force, f.grip)
                 row[2:5], row[5], row[6:9] = f.force, f.grip, f.contact
                 row[9], row[10], row[11] = f.sweeps, f.residual, solver.problem.step
                 row[13:16] = pose.position
+                row[18] = 1e6 * ((t1 - t0) + (clock() - t2))
+            else:
+                row[18] = 1e6 * (clock() - t0)
+            row[21] = 1e6 * gc_timer.take()
+            row[20] = 1e6 * (thread_time() - work_cpu)
+            row[19] = 1e6 * (clock() - now)
             ticks += 1
             last_tick = now
-            next_tick += period
-            if next_tick < time.perf_counter() - period:     # far behind (a stall): no burst of ticks
-                next_tick = time.perf_counter()
-            _sleep_until(next_tick)
+            deadline += period
+            if deadline < clock() - period:     # far behind (a stall): no burst of ticks
+                deadline = clock()
+            sleep_until(deadline)
     finally:
+        after = resource.getrusage(resource.RUSAGE_SELF)
+        cycles = gc.collect()                   # what the loop left for the collector (0: nothing leaked)
         kept = log[:min(ticks, config.max_ticks)] if ticks <= config.max_ticks else np.roll(
             log, -(ticks % config.max_ticks), axis=0)
         extra = {}
@@ -291,8 +329,11 @@ def _run(config: _Config, epoch, ready, stop) -> None:
             extra["device_forces"] = device.forces()
         if config.log_path:
             np.savez(config.log_path, log=kept, columns=np.array(LOG_COLUMNS), ticks=ticks, reason=reason,
-                     retries=problems.retries, priority=priority, cpu_seconds=time.process_time() - cpu,
-                     wall_seconds=time.perf_counter() - wall, **extra)
+                     retries=problems.retries, priority=", ".join(settings),
+                     cpu_seconds=time.process_time() - cpu, wall_seconds=clock() - wall,
+                     minor_faults=after.ru_minflt - usage.ru_minflt, major_faults=after.ru_majflt - usage.ru_majflt,
+                     involuntary_switches=after.ru_nivcsw - usage.ru_nivcsw,
+                     voluntary_switches=after.ru_nvcsw - usage.ru_nvcsw, garbage_cycles=cycles, **extra)
         if hasattr(device, "close"):
             device.close()
         problems.close()
@@ -313,8 +354,8 @@ class HapticLoop:
 
     def __init__(self, device, rate: float = 1000.0, max_contacts: int = MAX_CONTACTS, max_sweeps: int = MAX_SWEEPS,
                  tolerance: float = TOLERANCE, log_path: str | os.PathLike | None = None,
-                 idle_timeout: float = 60.0, max_ticks: int = 2_000_000, realtime: bool = False,
-                 cpu: int | None = None):
+                 idle_timeout: float = 60.0, max_ticks: int = 600_000, realtime: bool = False,
+                 cpu: int | None = None, tuning: timing.Tuning | None = None):
         if not (np.isfinite(rate) and 1.0 <= rate <= 20_000.0):
             raise TissueError(f"rate: must be between 1 and 20000 Hz, got {rate!r}")
         if not (idle_timeout > 0):
@@ -326,6 +367,7 @@ class HapticLoop:
             raise TissueError(f"cpu: must be a core number in 0..{(os.cpu_count() or 1) - 1}, got {cpu!r}")
         self.idle_timeout, self.max_ticks, self.realtime = float(idle_timeout), int(max_ticks), bool(realtime)
         self.cpu = cpu
+        self.tuning = timing.Tuning() if tuning is None else tuning
         self.process = None
         self.log = None
         self.published = 0
@@ -340,7 +382,7 @@ class HapticLoop:
         self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
         config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
                          self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks,
-                         self.realtime, self.cpu)
+                         self.realtime, self.cpu, self.tuning)
         self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
                                    name="tissue-haptics", daemon=True)
         self.process.start()
@@ -370,7 +412,7 @@ class HapticLoop:
 
     def _cleanup(self) -> None:
         for record in (getattr(self, "problems", None), getattr(self, "poses", None)):
-            if record is not None and record.header is not None:
+            if record is not None and record.headers is not None:
                 record.close()
         self.process = None
 
