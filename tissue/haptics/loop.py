@@ -113,7 +113,12 @@ class SharedRecord:
         """(sequence, a copy of the payload) of the newest complete record; None if none was
         written yet, or if the writer lapped every copy through `attempts` tries (try again later)."""
         for _ in range(attempts):
-            s, k = max((int(h[0]), k) for k, h in enumerate(self.headers) if int(h[0]) % 2 == 0)
+            # Each header read once: a second read may see the write that began after the first.
+            complete = [(s, k) for k, s in enumerate(int(h[0]) for h in self.headers) if s % 2 == 0]
+            if not complete:                      # both slots begun between our reads of them
+                self.retries += 1
+                continue
+            s, k = max(complete)
             if s == 0:
                 return None
             h = self.headers[k]
