@@ -30,6 +30,7 @@ the simulation's rate (held) and at the loop's.
 """
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -43,7 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from bench.common import FIGURES, machine, print_machine, write_results  # noqa: E402
+from bench.common import FIGURES, RESULTS, machine, print_machine, write_results  # noqa: E402
 
 BANDS = {   # rows wanted: the grasp scene's contact settings that give about that many
     50: ("contact.sampling=vertices", "contact.distance=0.004"),
@@ -332,6 +333,29 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
     return result
 
 
+def markdown(results: dict) -> str:
+    """The README's table: per band and loop kind, the loop's rate and periods, its long periods
+    by cause, its CPU, and the simulation's step against the simulation alone."""
+    lines = ["| rows wanted (median in contact) | loop | rate | period p99 / p99.9 / max | ticks; over 1.2 ms: "
+             "fraction, woken late, preempted in a tick | loop's CPU, of a core | simulation's step, wall / CPU, "
+             "against alone (pinned alike) | grasp took (clock) | load |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    names = {"normal": "normal priority", "realtime pinned": "SCHED_FIFO, core 1"}
+    for band in results["bands"]:
+        for kind, loop in band["loops"].items():
+            if loop is None:
+                continue
+            period, causes, step = loop["period_ms"], loop["over_1.2ms_by_cause"], band["step_ms"][kind]
+            load = band["load_and_steal"][kind][0]["load_1min"]
+            lines.append(
+                f"| {band['rows_wanted']} ({band['rows_median_in_contact']:.0f}) | {names.get(kind, kind)} | "
+                f"{loop['rate_hz']:,.0f} Hz | {period['p99']:.3f} / {period['p999']:.2f} / {period['max']:.1f} ms | "
+                f"{loop['ticks']:,}; {period['over_1.2ms_fraction']:.3f}, {causes['woke late']}, {causes['preempted']} | "
+                f"{loop['cpu_fraction_of_a_core']:.2f} | {step['wall']['ratio']:.2f}× / {step['cpu']['ratio']:.2f}× | "
+                f"{step['clock_seconds'][0]:.1f} s | {max(load):.1f} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the 450-row band only")
@@ -340,7 +364,11 @@ def main(argv=None) -> int:
     parser.add_argument("--rounds", type=int, default=1, help="runs of each kind per band, alternated")
     parser.add_argument("--bands", type=int, nargs="*", default=list(BANDS), help="rows wanted: 50 150 450")
     parser.add_argument("--out", help="the results' name under bench/results (default haptics, or haptics_tuning)")
+    parser.add_argument("--report", action="store_true", help="print the README's table from bench/results/haptics.json")
     args = parser.parse_args(argv)
+    if args.report:
+        print(markdown(json.loads((RESULTS / "haptics.json").read_text())))
+        return 0
     from tissue import backend
 
     # The simulation on one Taichi thread in every kind: pinned to one core, two threads wait for
@@ -384,6 +412,8 @@ def main(argv=None) -> int:
             print(text)
     results["seconds"] = time.perf_counter() - started
     write_results(args.out or ("haptics_tuning" if args.tuning else "haptics"), results)
+    if not args.tuning:
+        print(markdown(results))
     return 0
 
 
