@@ -6,8 +6,9 @@ the first step of each, which compiles, is left out). Per setting: the median wa
 step (every stage, ti.sync() at each stage's end) and of the free motion (where the check runs),
 the process's CPU ms per step (its blocks of steps, median; on this shared machine the steadier
 figure), and the steps the check rejected (each redone as two half steps). Where it rejects none
-(the typical case) the check costs its energy evaluation: positions and velocities read back and a
-signed SVD per element.
+(the typical case) the check costs its energy evaluation: one kernel launch, a signed
+principal-stretch eigensolve per element (at a step's end; its start reuses it unless contact
+moved the state).
 
     python -m bench.step_control [--rounds 5] [--steps 10] [--scenes beam liver liver_press]
 """

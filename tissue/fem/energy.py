@@ -1,4 +1,6 @@
-"""The elastic energy of a body's co-rotational elements at given positions (numpy, on the host).
+"""The elastic energy of a body's co-rotational elements at given positions: numpy on the host
+(the reference), and `element_energy`, the same per element in a Taichi function (the energy
+check's kernel, tissue.solver.step_control, computes it on the device).
 
 For "polar" the linear co-rotational energy is a true potential of its forces: with R the polar
 rotation of F and ε = RᵀF − I (symmetric), an element stores V (μ ε:ε + λ/2 (tr ε)²), which is
@@ -8,11 +10,10 @@ V κ/2 Σ min(0, σ̂ᵢ − c)² over the signed principal stretches (tissue.fe
 one it approximates, and the one used for it here. "linear" is ε = sym(F) − I.
 """
 
-from __future__ import annotations
-
 import numpy as np
+import taichi as ti
 
-from .corotational import COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
+from .corotational import COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, deformation_gradient, symmetric_eigen
 from .model import BodyModel
 
 
@@ -47,3 +48,29 @@ def element_energies(model: BodyModel, x: np.ndarray, rotation: str) -> np.ndarr
 
 def elastic_energy(model: BodyModel, x: np.ndarray, rotation: str) -> float:
     return float(element_energies(model, x, rotation).sum())
+
+
+@ti.func
+def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template()):
+    """Element e's elastic energy (J), as `element_energies`: σᵢ² by Jacobi rotations on FᵀF
+    (tissue.fem.corotational.symmetric_eigen), the smallest σ negative where det F < 0."""
+    F = deformation_gradient(m, e, x)
+    volume, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
+    energy = 0.0
+    if ti.static(rotation == "linear"):
+        eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
+        energy = volume * (mu * eps.norm_sqr() + 0.5 * lam * eps.trace() ** 2)
+    else:
+        squares, _ = symmetric_eigen(F.transpose() @ F)
+        s = ti.sqrt(ti.max(squares, 0.0))
+        if F.determinant() < 0.0:           # the smallest stretch turns negative (static indices only)
+            smallest, flipped = ti.min(s[0], s[1], s[2]), False
+            for i in ti.static(range(3)):
+                if not flipped and s[i] == smallest:
+                    s[i], flipped = -s[i], True
+        strain = s - 1.0
+        energy = volume * (mu * strain.norm_sqr() + 0.5 * lam * strain.sum() ** 2)
+        if ti.static(rotation == "invertible"):
+            d = ti.min(s - COMPRESSION_LIMIT, 0.0)
+            energy += volume * 0.5 * COMPRESSION_STIFFNESS * (lam + 2.0 * mu) * d.norm_sqr()
+    return energy

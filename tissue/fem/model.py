@@ -80,6 +80,7 @@ class BodyModel:
         self.material = material
         self.n_nodes, self.n_elements = 0, 0
         self.version = 0      # bumped whenever the arrays are re-allocated (growth)
+        self.edits = 0        # bumped whenever the device arrays are written (what reads them may cache)
         self.growths = 0
         self._real = real_numpy()
         self._faces = None
@@ -161,6 +162,7 @@ class BodyModel:
             self._allocate(*want)
 
     def _upload(self, *names: str) -> None:
+        self.edits += 1
         real = self._real
         for name in names:
             if name == "counts":
@@ -438,6 +440,7 @@ class BodyModel:
         node_reals[:len(v), :3] = self._rest[v]
         node_reals[:len(v), 3] = self._mass[v]
         self._counts[:] = self.n_nodes, self.n_elements
+        self.edits += 1
         WRITE_ROWS(self.pack, *staging, self._counts)
 
 
