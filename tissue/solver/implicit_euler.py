@@ -715,15 +715,20 @@ def _iterate_parallel(k: STEP, o: ti.template()):
         _iteration(k, o)
 
 
+# The step's report comes back as float64: a type written with `float` is resolved when the module
+# is imported, before ti.init chose the precision, so it would be float32.
+REPORT = ti.types.vector(6, ti.f64)
+
+
 @ti.kernel
-def _end_parallel(k: STEP, o: ti.template()) -> ti.types.vector(6, float):
+def _end_parallel(k: STEP, o: ti.template()) -> REPORT:
     _end(k)
     return _report(k)
 
 
 @compilation.without_ir_passes(_multigrid)
 @ti.kernel
-def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> ti.types.vector(6, float):
+def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> REPORT:
     """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
     ti.loop_config(serialize=True)
     for _ in range(1):
