@@ -356,6 +356,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--versus", help="also measure the cut steps against this commit, alternately")
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--out", default="cutting", help="the results' name under bench/results (default cutting)")
     args = parser.parse_args(argv)
     backend.init(precision="f64")
     info = machine()
@@ -411,7 +412,7 @@ def main(argv=None) -> None:
         print(f"  fold_rank {row['fold_rank']:4d}: CPU median {row['cpu_median_ms']:6.2f}, mean "
               f"{row['cpu_mean_ms']:6.2f}, max {row['cpu_max_ms']:6.1f}; wall median {row['wall_median_ms']:6.2f}, "
               f"mean {row['wall_mean_ms']:6.2f}; {row['folds']} folds")
-    write_results("cutting", {"machine": info, "fold_rank_sweep": sweep, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
+    write_results(args.out, {"machine": info, "fold_rank_sweep": sweep, "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
                               "load_average": os.getloadavg(), "step_length_m": STEP_LENGTH, "topology_edit": edit,
                               "results": results, "memory_floor": floor, "versus": compared})
 
