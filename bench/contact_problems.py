@@ -176,7 +176,7 @@ class Recording:
 
 
 def _dense(W):
-    from tissue.contact.frictional_contact import FactoredDelassus
+    from tissue.contact.delassus import FactoredDelassus
 
     return W.toarray() if isinstance(W, FactoredDelassus) or sp.issparse(W) else np.array(W)
 

@@ -88,7 +88,7 @@ def run(solver, stage, steps):
 def test_jaw_compliance_enters_W_as_h_over_A(backend):
     """W with the plate's rows, dense and factored, against W of the block alone (the same rows
     on a rigid obstacle at the same place) plus h Hⱼ Hⱼᵀ / A_hap, formed by hand."""
-    from tissue.contact.frictional_contact import FactoredDelassus
+    from tissue.contact.delassus import FactoredDelassus
 
     solver, stage, plate = block_under_plate()
     run(solver, stage, 25)

@@ -13,8 +13,8 @@ exact), the frictional contact solver, and the stage that ties them after the fr
 
 from .constraints import Attachment
 from .detection import Contacts, Detector
-from .frictional_contact import (ContactInfo, FactoredDelassus, FrictionalContactSolver, natural_map_residual,
-                                 solve_frictional_contact)
+from .delassus import FactoredDelassus
+from .frictional_contact import ContactInfo, FrictionalContactSolver, natural_map_residual, solve_frictional_contact
 from .layer import ContactLayer, Obstacle
 from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh
 from .pipeline import Contact, ContactBody, ContactResult, ContactStage

@@ -46,7 +46,8 @@ from ..stats import Stats
 from .compliance import ExactCompliance, WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows
 from .detection import Contacts, Detector
-from .frictional_contact import ContactInfo, FactoredDelassus, FrictionalContactSolver
+from .delassus import FactoredDelassus
+from .frictional_contact import ContactInfo, FrictionalContactSolver
 from .obstacles import RigidObstacle
 
 # Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`; method 'gauss_seidel'

@@ -33,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from ..contact.frictional_contact import FactoredDelassus, _contact_error2, _local_solve
+from ..contact.delassus import FactoredDelassus
+from ..contact.frictional_contact import _contact_error2, _local_solve
 from ..errors import TissueError
 from ..launch import replayed
 
