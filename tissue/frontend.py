@@ -9,8 +9,9 @@ CG and multigrid hundreds of times). Most of that time went to two pure function
   `textwrap` to 80 columns, built for every name and statement for Taichi's error messages;
 - `inspect.getsourcelines` / `getsourcefile`, which tokenise the module to find a function.
 
-`install()` memoises both by their inputs. Taichi receives the same strings as before, so its
-messages and its offline-cache keys do not change (tests/test_frontend.py checks both).
+`install()` memoises both by their inputs. Taichi receives the same strings as before
+(tests/test_frontend.py compares them with its own), so its messages and its offline-cache keys
+do not change.
 """
 
 from __future__ import annotations
@@ -27,13 +28,14 @@ _pos_info: dict[tuple, str] = {}
 
 
 def _position_key(ctx, node) -> tuple:
-    """Everything `get_pos_info` reads: the function's source lines and the node's span."""
-    body = getattr(node, "body", None)
-    first_body_line = body[0].lineno if isinstance(body, list) and body and hasattr(body[0], "lineno") else None
-    end = node.end_lineno if first_body_line is None else max(node.end_lineno, first_body_line)
+    """Everything `get_pos_info` reads: the node's span and the source lines it prints (a loop,
+    branch or definition up to its body's first line, as it does)."""
+    if type(node).__name__ in ("For", "While", "FunctionDef", "If"):
+        end = max(node.body[0].lineno - 1, node.lineno)
+    else:
+        end = node.end_lineno
     return (ctx.file, ctx.lineno_offset, ctx.indent, ctx.func.func.__name__, type(node).__name__,
-            node.lineno, node.end_lineno, node.col_offset, node.end_col_offset, first_body_line,
-            tuple(ctx.src[node.lineno - 1:end]))
+            node.lineno, node.end_lineno, node.col_offset, node.end_col_offset, tuple(ctx.src[node.lineno - 1:end]))
 
 
 def _get_pos_info(ctx, node) -> str:

@@ -132,7 +132,6 @@ def replayed(kernel) -> Replayed:
     return Replayed(kernel)
 
 
-
 def host_view(array: Ndarray) -> np.ndarray:
     """A numpy array over a CPU ndarray's own memory (no copy): what numpy writes there, kernels
     read, and the other way round; a vector or matrix ndarray's element is its last axes. CPU

@@ -23,7 +23,7 @@ from .. import backend
 from ..errors import TissueError
 from ..fem.model import HELD
 from . import subdivision
-from .separation import duplications, face_key, sharing, still_interior
+from .separation import duplications, face_key, incident_elements, sharing, still_interior
 from .subdivision import SNAP, quality, split_element, within_bound
 from .surface import CutSurface
 
@@ -259,8 +259,7 @@ class Cutter:
         on = np.flatnonzero(state == 0)
         if len(on) == 0:
             return []
-        codes = model.incidence_rows[on]
-        elements = np.unique(codes[codes >= 0] // 4)
+        elements = np.unique(incident_elements(model, on))
         tets = model.tets[elements].astype(np.int64)
         s = state[tets]
         off = np.where(np.abs(s) == 1, s, 0)

@@ -21,9 +21,10 @@ def face_key(nodes) -> tuple[int, int, int]:
     return a, b, c
 
 
-def incident_elements(model, node: int) -> np.ndarray:
-    """The elements that use this node (from the model's gather index)."""
-    codes = model.incidence_rows[node]
+def incident_elements(model, nodes) -> np.ndarray:
+    """The elements that use this node (or these nodes: once per node using one), from the model's
+    gather index."""
+    codes = model.incidence_rows[nodes]
     return codes[codes >= 0] // 4
 
 
