@@ -8,7 +8,7 @@ import scipy.linalg
 from tissue.fem.material import Material
 from tissue.fem.model import HELD, BodyModel
 from tissue.mesh import box
-from tissue.mesh.surface import OUTWARD_FACES
+from tissue.mesh.topology import OUTWARD_FACES
 from tissue.solver.reference import rest_matrix
 
 MATERIAL = Material(young=5000.0, poisson=0.35, density=1000.0)

@@ -14,7 +14,8 @@ pytest.importorskip("pyvista")
 from tissue.errors import TissueError  # noqa: E402
 from tissue.mesh import organs  # noqa: E402
 from tissue.mesh.tetmesh import TetMesh  # noqa: E402
-from tissue.mesh.tetrahedralize import read_surface, tetrahedralize  # noqa: E402
+from tissue.mesh.closed_surface import read_surface  # noqa: E402
+from tissue.mesh.tetrahedralize import tetrahedralize  # noqa: E402
 
 # The minimum dihedral angle the tetrahedraliser is stated to reach (its module docstring reports
 # >= 14 degrees on every surface tried; the tests keep a margin).

@@ -329,7 +329,8 @@ def _make_mesh(body: SoftBody, name: str):
         elif kind == "shape":
             mesh = box(size=body.size, cells=body.cells, origin=tuple(-0.5 * s for s in body.size))
         elif kind == "surface":
-            from .mesh.tetrahedralize import read_surface, tetrahedralize
+            from .mesh.closed_surface import read_surface
+            from .mesh.tetrahedralize import tetrahedralize
 
             points, triangles = read_surface(body.mesh)
             mesh = tetrahedralize(points, triangles, target_tets=body.tets, source=body.mesh)
@@ -351,7 +352,7 @@ def source_surface(body: SoftBody):
 
         points, triangles = organ_surface(body.mesh)
     elif kind == "surface":
-        from .mesh.tetrahedralize import read_surface
+        from .mesh.closed_surface import read_surface
 
         points, triangles = read_surface(body.mesh)
     else:

@@ -81,7 +81,7 @@ class Obstacle(Options):
             return [Capsule(tuple(a), tuple(b), self.radius) for a, b in zip(s[:, :3], s[:, 3:])]
         if self.shape == "box":
             return [Box(self.centre, self.half, R)]
-        from ..mesh.tetrahedralize import read_surface
+        from ..mesh.closed_surface import read_surface
 
         points, triangles = read_surface(self.path)
         return [TriangleMesh(points @ R.T + self.centre, triangles)]

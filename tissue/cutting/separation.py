@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh.surface import OUTWARD_FACES
+from ..mesh.topology import OUTWARD_FACES
 
 
 def face_key(nodes) -> tuple[int, int, int]:

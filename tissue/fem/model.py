@@ -35,7 +35,7 @@ from .. import backend
 from ..errors import TissueError
 from ..launch import replayed
 from ..mesh import TetMesh
-from ..mesh.surface import OUTWARD_FACES
+from ..mesh.topology import OUTWARD_FACES
 from ..mesh.tetmesh import signed_volumes
 from .material import Material
 

@@ -190,7 +190,7 @@ def _extract(implicit, lo, hi, grid_spacing: float, target_triangles: int, smoot
     (points, triangles) oriented outward, checked closed and manifold."""
     import pyvista as pv
 
-    from .tetrahedralize import enclosed_volume, surface_edges_report
+    from .closed_surface import enclosed_volume, surface_edges_report
 
     lo = np.asarray(lo, dtype=np.float64) - 3 * grid_spacing
     hi = np.asarray(hi, dtype=np.float64) + 3 * grid_spacing

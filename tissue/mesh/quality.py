@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .surface import OUTWARD_FACES
 from .tetmesh import TetMesh, signed_volumes
+from .topology import OUTWARD_FACES
 
 # The faces (rows of OUTWARD_FACES) meeting at each of the six edges: faces opposite vertices
 # k and l meet along the edge between the other two vertices.
@@ -37,6 +37,17 @@ def min_dihedral_angles(points, tets) -> np.ndarray:
     """Smallest dihedral angle of each tetrahedron in degrees (70.53 for a regular one, -> 0 for
     slivers, needles and caps)."""
     return dihedral_angles(points, tets).min(axis=1)
+
+
+def signed_min_dihedral_angles(points, tets) -> np.ndarray:
+    """Smallest dihedral angle of each tetrahedron in degrees, less 180 where it is inverted or
+    flat (< 0): the one number a mesh optimiser's guards compare, so a flat tetrahedron's zero
+    normals count as 0 rather than NaN (which every comparison would let through)."""
+    n = _face_normals(points, tets)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+    cos = -np.einsum("mij,mij->mi", n[:, FACE_PAIRS[:, 0]], n[:, FACE_PAIRS[:, 1]])
+    angle = np.degrees(np.arccos(np.clip(cos.max(axis=1), -1.0, 1.0)))
+    return np.where(signed_volumes(points, tets) > 0, angle, angle - 180.0)
 
 
 def aspect_ratios(points, tets) -> np.ndarray:

@@ -9,26 +9,13 @@ from __future__ import annotations
 import numpy as np
 
 from .tetmesh import TetMesh
-
-# The four faces of a positively oriented tetrahedron (0, 1, 2, 3), row i opposite vertex i, each
-# ordered so that its right-hand normal points away from that vertex, i.e. out of the tetrahedron.
-OUTWARD_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+from .topology import boundary_faces_and_owners
 
 
 def boundary_faces(tets) -> np.ndarray:
     """(k, 3) triangles, on the boundary, oriented outward (tets must be positively oriented,
     as a TetMesh's are), in the order of the tetrahedra they come from."""
-    tets = np.asarray(tets)
-    faces = tets[:, OUTWARD_FACES].reshape(-1, 3)
-    # Two tets share a face exactly when the sorted vertex triples are equal: sort the triples,
-    # group equal rows, keep the groups of one.
-    key = np.sort(faces, axis=1)
-    order = np.lexsort(key.T[::-1])
-    new_group = np.ones(len(order) + 1, dtype=bool)
-    new_group[1:-1] = np.any(key[order[1:]] != key[order[:-1]], axis=1)
-    starts = np.flatnonzero(new_group)
-    single = starts[:-1][np.diff(starts) == 1]
-    return faces[np.sort(order[single])].astype(tets.dtype)
+    return boundary_faces_and_owners(np.asarray(tets))[0]
 
 
 def boundary_surface(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
