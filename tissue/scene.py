@@ -58,6 +58,8 @@ import numpy as np
 
 from . import backend, compilation
 from .errors import TissueError
+from .mesh.closed_surface import SURFACE_SUFFIXES
+from .mesh.organs import ORGANS as ORGAN_SURFACES
 from .options import Options, apply_overrides, require, suggestion, validate
 from .solver.implicit_euler import CGSettings, StepParameters
 from .stats import Stats
@@ -65,9 +67,8 @@ from .stats import Stats
 __all__ = ["Fixed", "SoftBody", "Solver", "Render", "Scene", "Simulation", "Body", "Drawable", "STAGES",
            "add_stage", "validate", "apply_overrides", "build_mesh", "held_nodes"]
 
-ORGANS = ("liver", "stomach", "colon")
+ORGANS = tuple(ORGAN_SURFACES)
 SHAPES = ("beam", "box")
-SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off")
 OUTPUTS = ("png", "gif", "mp4", "vtu")
 
 
