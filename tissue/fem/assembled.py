@@ -164,11 +164,17 @@ class BlockRows(_Blocks):
         """Bytes a product reads from the matrix: blocks, column ids, row offsets."""
         return self.n_blocks * (9 * real_bytes() + 4) + 4 * (self.model.n_nodes + 1)
 
-    def to_scipy(self) -> sp.csr_matrix:
+    def block_values(self) -> np.ndarray:
+        """The matrix's numbers, flat float64: every block, row-major, in storage order."""
+        return self.arrays["blocks"].to_numpy()[:self.n_blocks].astype(np.float64).ravel()
+
+    def to_scipy(self, values: np.ndarray | None = None) -> sp.csr_matrix:
+        """The matrix in scipy; with `values`, the same pattern holding those numbers instead of
+        `block_values()` (e.g. each entry's index, to gather it later without rebuilding)."""
         n = self.model.n_nodes
+        values = self.block_values() if values is None else values
         offsets = self.arrays["offsets"].to_numpy()[:n + 1]
-        return sp.bsr_matrix((self.arrays["blocks"].to_numpy()[:self.n_blocks].astype(np.float64),
-                              self.arrays["index"].to_numpy()[:self.n_blocks], offsets),
+        return sp.bsr_matrix((values.reshape(-1, 3, 3), self.arrays["index"].to_numpy()[:self.n_blocks], offsets),
                              shape=(3 * n, 3 * n)).tocsr()
 
 
@@ -295,15 +301,23 @@ class SymmetricBlocks(_Blocks):
         """Bytes a product reads from the matrix: blocks and their row and column ids."""
         return len(self._upper) * (9 * real_bytes() + 8) + self.model.n_nodes * 9 * real_bytes()
 
-    def to_scipy(self) -> sp.csr_matrix:
+    def block_values(self) -> np.ndarray:
+        """The matrix's numbers, flat float64: the upper blocks, then the diagonal blocks, row-major."""
         n, count = self.model.n_nodes, len(self._upper)
-        blocks = self.arrays["blocks"].to_numpy()[:count].astype(np.float64)
+        return np.concatenate([self.arrays["blocks"].to_numpy()[:count].ravel(),
+                               self.arrays["diagonal"].to_numpy()[:n].ravel()]).astype(np.float64)
+
+    def to_scipy(self, values: np.ndarray | None = None) -> sp.csr_matrix:
+        """The matrix in scipy; with `values`, the same pattern holding those numbers instead of
+        `block_values()` (e.g. each entry's index, to gather it later without rebuilding)."""
+        n, count = self.model.n_nodes, len(self._upper)
+        values = self.block_values() if values is None else values
         rows, cols = self._upper[:, 0], self._upper[:, 1]
         dense_index = (3 * rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
         dense_col = (3 * cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-        upper = sp.coo_matrix((blocks.ravel(), (dense_index.ravel(), dense_col.ravel())), shape=(3 * n, 3 * n))
-        diagonal = sp.bsr_matrix((self.arrays["diagonal"].to_numpy()[:n].astype(np.float64), np.arange(n),
-                                  np.arange(n + 1)), shape=(3 * n, 3 * n))
+        upper = sp.coo_matrix((values[:9 * count], (dense_index.ravel(), dense_col.ravel())), shape=(3 * n, 3 * n))
+        diagonal = sp.bsr_matrix((values[9 * count:].reshape(-1, 3, 3), np.arange(n), np.arange(n + 1)),
+                                 shape=(3 * n, 3 * n))
         return (upper + upper.T + diagonal).tocsr()
 
 
