@@ -1,6 +1,7 @@
-"""The README's benchmark figures against the JSON they come from (no Taichi, fast).
+"""The benchmark figures of the README and of docs/*.md against the JSON they come from (no
+Taichi, fast).
 
-A table (or paragraph) of the README whose figures come from a benchmark is preceded by a comment
+A table (or paragraph) of these pages whose figures come from a benchmark is preceded by a comment
 naming its JSON file(s), e.g. `<!-- figures: bench/results/deformation.json -->`; the block is
 the lines after it up to the first blank line. Every number in the block (outside its header
 row) must be one of the JSON's numbers as printed: a value v of the file matches a printed
@@ -20,8 +21,11 @@ TAG = re.compile(r"<!-- figures: ([^>]*?) -->")
 NUMBER = re.compile(r"(?<![\w.])([-−]?\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?)(×?)")
 
 
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
 def tagged_blocks(text: str):
-    """(files, lines) of every tagged block of the README."""
+    """(files, lines) of every tagged block of a page."""
     lines = text.splitlines()
     for i, line in enumerate(lines):
         match = TAG.search(line)
@@ -72,10 +76,10 @@ def matches(text: str, values) -> bool:
 
 
 def blocks():
-    return list(tagged_blocks((ROOT / "README.md").read_text()))
+    return [block for page in PAGES for block in tagged_blocks(page.read_text())]
 
 
-def test_readme_tags_its_benchmark_tables():
+def test_the_pages_tag_their_benchmark_tables():
     """The start-up, deformation, versus and stability figures are tagged."""
     named = {f for files, _ in blocks() for f in files}
     for name in ("startup.json", "deformation.json", "versus.json", "stability.json"):
