@@ -17,7 +17,7 @@ Models (all on the same linear tetrahedra, same mesh, same lumped body force):
              "polar" plus the compression limit of tissue.fem.corotational: per element
              V Σᵢ ψ(σ̂ᵢ) over the signed singular values σ̂ of F (the smallest negated in an
              inverted element), ψ(σ̂) = κ c² φ(σ̂/c) below c, φ(s) = (s − 1)²/(2s) down to s₀ and
-             its second-order Taylor polynomial at s₀ below, κ = COMPRESSION_STIFFNESS (λ + 2μ),
+             its tangent line at s₀ below, κ = COMPRESSION_STIFFNESS (λ + 2μ),
              c = COMPRESSION_LIMIT, s₀ = BARRIER_END; its force is the analytic gradient
              U diag(ψ'(σ̂)) Vᵀ (batched SVD).
   "linear"   the rest-shape linear model, one sparse solve.
@@ -112,9 +112,9 @@ def compression_limit(body: Body, xe: np.ndarray):
     r = s / c                                   # the barrier's φ(r) = r/2 − 1 + 1/(2r) ...
     barrier = r >= s0
     q = np.where(barrier, r, s0)
-    phi = np.where(barrier, q / 2 - 1 + 1 / (2 * q),     # ... or its Taylor polynomial at s₀
-                   s0 / 2 - 1 + 1 / (2 * s0) + (0.5 - 0.5 / s0 ** 2) * (r - s0) + (r - s0) ** 2 / (2 * s0 ** 3))
-    dphi = np.where(barrier, 0.5 - 0.5 / q ** 2, 0.5 - 0.5 / s0 ** 2 + (r - s0) / s0 ** 3)
+    phi = np.where(barrier, q / 2 - 1 + 1 / (2 * q),     # ... or its tangent line at s₀
+                   s0 / 2 - 1 + 1 / (2 * s0) + (0.5 - 0.5 / s0 ** 2) * (r - s0))
+    dphi = 0.5 - 0.5 / q ** 2
     active = r < 1.0
     V = body.mesh.volumes
     P = np.einsum("mij,mj,mjk->mik", U, np.where(active, kappa * c * dphi, 0.0), Vt)

@@ -48,12 +48,12 @@ def element_energies(model: BodyModel, x: np.ndarray, rotation: str) -> np.ndarr
 
 def limit_energies(kappa: np.ndarray, stretches: np.ndarray) -> np.ndarray:
     """(elements,) Σᵢ ψ(σ̂ᵢ) of the compression limit (per unit volume), κ per element:
-    κ c² φ(σ̂/c) with φ(s) = (s − 1)²/(2s) below c, continued to second order below BARRIER_END."""
+    κ c² φ(σ̂/c) with φ(s) = (s − 1)²/(2s) below c, continued by its tangent line below BARRIER_END."""
     c = COMPRESSION_LIMIT
     s = stretches / c
     t = np.maximum(s, BARRIER_END)
     h = s - t
-    phi = (t - 1.0) ** 2 / (2.0 * t) + 0.5 * (1.0 - 1.0 / t ** 2) * h + 0.5 * h * h / t ** 3
+    phi = (t - 1.0) ** 2 / (2.0 * t) + 0.5 * (1.0 - 1.0 / t ** 2) * h
     return kappa * c * c * np.where(s < 1.0, phi, 0.0).sum(1)
 
 
