@@ -152,6 +152,14 @@ def test_limit_is_a_barrier_with_the_quadratic_limit_as_its_expansion(backend):
         differenced = -(element_energies(model, plus, "invertible")[0] - element_energies(model, minus, "invertible")[0]) / (2 * step)
         assert force > 0.0                                  # pushes the corner back out
         assert force == pytest.approx(differenced, rel=1e-6)
+        # The tangent (directions held fixed) is the exact Jacobian along this motion: F stays
+        # diagonal, so neither the rotation nor the principal directions turn.
+        fem = CorotationalFEM(tet, MATERIAL, rotation="invertible")
+        p = np.zeros_like(x)
+        p[1, 0] = 1.0
+        jacobian = (fem.elastic_forces_numpy(x + step * p) - fem.elastic_forces_numpy(x - step * p)) / (2 * step)
+        fem.elastic_forces_numpy(x)                         # the rotations and the limit at x
+        np.testing.assert_allclose(fem.stiffness_product_numpy(p), jacobian, rtol=0, atol=1e-6 * np.abs(jacobian).max())
 
 
 # The tests that step a solver with "invertible" compile its whole step, for minutes on this
