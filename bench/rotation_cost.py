@@ -61,7 +61,8 @@ def main(argv=None) -> None:
             rows.append(row)
             print(f"{label:>18} {state:>9}: polar {row['polar_ms']:.3f} ms, invertible {row['invertible_ms']:.3f} ms "
                   f"({row['ratio']:.2f}×); CPU {row['polar_cpu_ms']:.3f} → {row['invertible_cpu_ms']:.3f} ms "
-                  f"({row['cpu_ratio']:.2f}×); {row['limited_elements']} elements past the limit at the last step", flush=True)
+                  f"({row['cpu_ratio']:.2f}×); {row['limited_elements']} elements past the limit at the last step",
+                  flush=True)
     write_results("rotation_cost", {"machine": info, "rounds": args.rounds, "rows": rows})
 
 
