@@ -30,8 +30,8 @@ from .model import MODEL, BodyModel, real_numpy
 
 # The per-step work of the FEM: element rotations, the principal directions (columns, rotated
 # frame) in which each element's compression limit is active ("invertible"; zero otherwise) and
-# the limit's curvature ψ''(σ̂) along each, the inverted-element count, and the gather buffer (4 per element) or the atomic accumulator (per
-# node), whichever the accumulation uses.
+# the limit's curvature ψ''(σ̂) along each, the inverted-element count, and the gather buffer (4
+# per element) or the atomic accumulator (per node), whichever the accumulation uses.
 FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), limited=ti.types.ndarray(), limit_curvature=ti.types.ndarray(),
                             inverted=ti.types.ndarray(), buffer=ti.types.ndarray(), accumulator=ti.types.ndarray())
 
