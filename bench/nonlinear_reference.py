@@ -15,9 +15,11 @@ Models (all on the same linear tetrahedra, same mesh, same lumped body force):
              Jacobian to ~1e-9 relative, and Newton converges quadratically.
   "invertible"
              "polar" plus the compression limit of tissue.fem.corotational: per element
-             V κ/2 Σᵢ min(0, σ̂ᵢ − c)² over the signed singular values σ̂ of F (the smallest negated
-             in an inverted element), κ = COMPRESSION_STIFFNESS (λ + 2μ), c = COMPRESSION_LIMIT;
-             its force is the analytic gradient U diag(κ min(0, σ̂ − c)) Vᵀ (batched SVD).
+             V Σᵢ ψ(σ̂ᵢ) over the signed singular values σ̂ of F (the smallest negated in an
+             inverted element), ψ(σ̂) = κ c² φ(σ̂/c) below c, φ(s) = (s − 1)²/(2s) down to s₀ and
+             its tangent line at s₀ below, κ = COMPRESSION_STIFFNESS (λ + 2μ),
+             c = COMPRESSION_LIMIT, s₀ = BARRIER_END; its force is the analytic gradient
+             U diag(ψ'(σ̂)) Vᵀ (batched SVD).
   "linear"   the rest-shape linear model, one sparse solve.
 
 Equilibrium f_int(x) + f_ext = 0 on the free nodes by full Newton steps (sparse LU) along a load
@@ -99,18 +101,25 @@ def polar_rotations(F: np.ndarray) -> np.ndarray:
 
 def compression_limit(body: Body, xe: np.ndarray):
     """The "invertible" compression limit's element forces (m, 4, 3) and energies (m,)."""
-    from tissue.fem.corotational import COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
+    from tissue.fem.corotational import BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
 
     lam, mu = body.material.lame
-    kappa = COMPRESSION_STIFFNESS * (lam + 2 * mu)
+    kappa, c, s0 = COMPRESSION_STIFFNESS * (lam + 2 * mu), COMPRESSION_LIMIT, BARRIER_END
     U, s, Vt = np.linalg.svd(deformation_gradients(body, xe))
     flip = np.linalg.det(U @ Vt) < 0
     U[flip, :, -1] *= -1
     s[flip, -1] *= -1
-    d = np.minimum(0.0, s - COMPRESSION_LIMIT)
+    r = s / c                                   # the barrier's φ(r) = r/2 − 1 + 1/(2r) ...
+    barrier = r >= s0
+    q = np.where(barrier, r, s0)
+    phi = np.where(barrier, q / 2 - 1 + 1 / (2 * q),     # ... or its tangent line at s₀
+                   s0 / 2 - 1 + 1 / (2 * s0) + (0.5 - 0.5 / s0 ** 2) * (r - s0))
+    dphi = 0.5 - 0.5 / q ** 2
+    active = r < 1.0
     V = body.mesh.volumes
-    P = np.einsum("mij,mj,mjk->mik", U, kappa * d, Vt)
-    return -V[:, None, None] * np.einsum("mij,maj->mai", P, body.grads), V * 0.5 * kappa * (d * d).sum(1)
+    P = np.einsum("mij,mj,mjk->mik", U, np.where(active, kappa * c * dphi, 0.0), Vt)
+    energy = V * kappa * c * c * np.where(active, phi, 0.0).sum(1)
+    return -V[:, None, None] * np.einsum("mij,maj->mai", P, body.grads), energy
 
 
 def edge_frames(xe: np.ndarray) -> np.ndarray:

@@ -5,7 +5,9 @@ case, where the two differ only by the limit's test) and squashed to a quarter o
 limit active in the first steps; the 3 kPa liver springs back within them, so the timed steps
 after the warm-up are mostly the typical case again: `limited_elements` counts the last step's).
 The two rotations are stepped alternately, `--rounds` rounds of `steps_for(m)` steps each from the
-same state, medians of all samples (warm-up excluded, ti.sync() around each step).
+same state, medians of all samples (warm-up excluded, ti.sync() around each step); beside the wall
+time, the process's CPU time per step of each round (its warm-up steps included), the median over
+rounds: on a machine shared with other work the CPU time moves less than the wall time.
 
     python -m bench.rotation_cost [--rounds 3]
 """
@@ -13,6 +15,7 @@ same state, medians of all samples (warm-up excluded, ti.sync() around each step
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 
@@ -40,20 +43,26 @@ def main(argv=None) -> None:
                 low = x[:, 2].min()
                 x[:, 2] = low + 0.25 * (x[:, 2] - low)
             solvers = {r: make_solver(mesh, fixed, gravity, rotation=r) for r in ROTATIONS}
-            samples = {r: [] for r in ROTATIONS}
+            samples, cpu = {r: [] for r in ROTATIONS}, {r: [] for r in ROTATIONS}
             for _ in range(args.rounds):
                 for r, solver in solvers.items():
                     solver.set_state(x, np.zeros_like(x))
+                    start = time.process_time()
                     t = time_steps(solver.step, steps_for(mesh.n_tets))
+                    cpu[r].append(1e3 * (time.process_time() - start) / (t["samples"] + 3))   # + the warm-up
                     samples[r].append(t["median_ms"])
             limited = solvers["invertible"].fem.work_arrays["limited"].to_numpy()[:mesh.n_tets]
             row = {"mesh": label, "tets": mesh.n_tets, "state": state,
                    "limited_elements": int((np.abs(limited).sum(axis=(1, 2)) > 0).sum()),
-                   **{f"{r}_ms": float(np.median(samples[r])) for r in ROTATIONS}}
+                   **{f"{r}_ms": float(np.median(samples[r])) for r in ROTATIONS},
+                   **{f"{r}_cpu_ms": float(np.median(cpu[r])) for r in ROTATIONS}}
             row["ratio"] = row["invertible_ms"] / row["polar_ms"]
+            row["cpu_ratio"] = row["invertible_cpu_ms"] / row["polar_cpu_ms"]
             rows.append(row)
             print(f"{label:>18} {state:>9}: polar {row['polar_ms']:.3f} ms, invertible {row['invertible_ms']:.3f} ms "
-                  f"({row['ratio']:.2f}×; {row['limited_elements']} elements past the limit at the last step)", flush=True)
+                  f"({row['ratio']:.2f}×); CPU {row['polar_cpu_ms']:.3f} → {row['invertible_cpu_ms']:.3f} ms "
+                  f"({row['cpu_ratio']:.2f}×); {row['limited_elements']} elements past the limit at the last step",
+                  flush=True)
     write_results("rotation_cost", {"machine": info, "rounds": args.rounds, "rows": rows})
 
 

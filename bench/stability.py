@@ -505,6 +505,11 @@ def rotations_list(text: str) -> list[str]:
     return names
 
 
+def cell_key(cell: dict) -> tuple:
+    """What names a cell (its case, mode, material, dt, rotation and friction)."""
+    return tuple(cell.get(k) for k in ("case", "mode", "young", "poisson", "dt", "rotation", "friction"))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_arguments(parser)
@@ -517,7 +522,11 @@ def main(argv=None):
     parser.add_argument("--cases", type=lambda text: text.split(","), help="run only the cells of these cases "
                         "(comma-separated: material, twist, inverted, impact, jerk, friction, press) and replace "
                         "them in bench/results/stability.json, like --only (both: the cells in both)")
+    parser.add_argument("--young", type=lambda text: [float(E) for E in text.split(",")],
+                        help="the material cells only at these E (Pa, comma-separated); the others kept")
     parser.add_argument("--material-only", action="store_true", help="only the E × ν × dt cells")
+    parser.add_argument("--out", help="write the cells run to bench/results/OUT.json (and .md) alone, "
+                                      "stability.json left as it is (a subset's before/after)")
     parser.add_argument("--step-control", choices=["energy", "none"], default=STEP_CONTROL,
                         help="'none': the ablation without the energy check, written to "
                              "bench/results/stability_unchecked.json (stability.json is left as it is)")
@@ -541,25 +550,27 @@ def main(argv=None):
         cells = [c for c in cells if c["rotation"] in args.only]
     if args.cases:
         cells = [c for c in cells if c["case"] in args.cases]
+    if args.young:
+        cells = [c for c in cells if c["case"] != "material" or c["young"] in args.young]
     if args.material_only:
         cells = [c for c in cells if c["case"] == "material"]
     if not cells:
         parser.error("no cells left by --only / --cases")
     for c in cells:
         c.update(arch=args.arch, step_control=args.step_control)
-    name = "stability" if args.step_control == STEP_CONTROL else "stability_unchecked"
+    name = args.out or ("stability" if args.step_control == STEP_CONTROL else "stability_unchecked")
     from bench import stability   # by its module name, so that workers import it (and keep its cache)
 
     with client(args) as c:
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
     data = {"machine": info, "cells": results}
-    if (args.only or args.cases) and name == "stability":   # the other cells and their run's record stay
+    if (args.only or args.cases or args.young) and name == "stability":   # the other cells and their run's record stay
         old = json.loads((RESULTS / "stability.json").read_text())
         records = {k: v for k, v in old.items() if k.startswith("machine")}
-        records[f"machine_{'_'.join([*(args.only or []), *(args.cases or [])])}"] = info
-        rerun = {(c["case"], c["rotation"]) for c in cells}
-        data = {**records, "cells": [r for r in old["cells"] if (r["case"], r.get("rotation")) not in rerun] + results}
+        records[f"machine_{'_'.join([*(args.only or []), *(args.cases or []), *map(str, args.young or [])])}"] = info
+        rerun = {cell_key(c) for c in cells}
+        data = {**records, "cells": [r for r in old["cells"] if cell_key(r) not in rerun] + results}
         for r in data["cells"]:
             reclassify(r)
         results = data["cells"]

@@ -108,6 +108,63 @@ def test_inverted_element_is_pushed_toward_uninverting(backend, rotation):
     np.testing.assert_allclose(f, internal_forces(body, rotation, x), rtol=0, atol=1e-9 * np.abs(f).max())
 
 
+def squeezed_tet(a):
+    """One tetrahedron with F = diag(a, 1, 1) (a < 0: inverted through the plane x = 0)."""
+    from tissue.mesh import TetMesh
+
+    X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    return TetMesh(X, np.array([[0, 1, 2, 3]])), X * [a, 1.0, 1.0]
+
+
+def test_limit_is_a_barrier_with_the_quadratic_limit_as_its_expansion(backend):
+    """The compression limit's energy along uniaxial compression F = diag(a, 1, 1), where the
+    polar part is V (λ/2 + μ)(a − 1)² in closed form: near c it is the quadratic limit
+    κ/2 (a − c)² to within a relative (c − a)/c; at a = BARRIER_END c it is the barrier
+    κ c² (s − 1)²/(2s), s = a/c (which grows without bound as a → 0; its tangent line takes
+    over below), c/a times the quadratic limit there; the kernels' force on the squeezed corner
+    is the energy's derivative (numpy energy of tissue.fem.energy, central differences) on both
+    sides of BARRIER_END and inverted, and their stiffness product (with the barrier's curvature)
+    the force's."""
+    from tissue.fem.corotational import BARRIER_END, COMPRESSION_STIFFNESS
+    from tissue.fem.energy import element_energies
+    from tissue.fem.model import BodyModel
+
+    c = COMPRESSION_LIMIT
+    lam, mu = MATERIAL.lame
+    kappa = COMPRESSION_STIFFNESS * (lam + 2 * mu)
+
+    def limit(a):
+        tet, x = squeezed_tet(a)
+        model = BodyModel(tet, MATERIAL)
+        return element_energies(model, x, "invertible")[0] / (1 / 6) - (0.5 * lam + mu) * (a - 1) ** 2
+
+    for h in (1e-2, 1e-3):
+        assert limit(c - h) == pytest.approx(0.5 * kappa * h * h, rel=2 * h / c)
+    assert limit(c + 1e-3) == 0.0
+    a = BARRIER_END * c
+    assert limit(a) == pytest.approx(kappa * c * c * (a / c - 1) ** 2 / (2 * a / c), rel=1e-12)
+    for a in (0.5 * c, 1.01 * BARRIER_END * c, 0.99 * BARRIER_END * c, 1e-3, -0.3):
+        tet, x = squeezed_tet(a)
+        model = BodyModel(tet, MATERIAL)
+        force = CorotationalFEM(tet, MATERIAL, rotation="invertible").elastic_forces_numpy(x)[1, 0]
+        step = 1e-6
+        plus, minus = x.copy(), x.copy()
+        plus[1, 0] += step
+        minus[1, 0] -= step
+        energy = [element_energies(model, y, "invertible")[0] for y in (plus, minus)]
+        differenced = -(energy[0] - energy[1]) / (2 * step)
+        assert force > 0.0                                  # pushes the corner back out
+        assert force == pytest.approx(differenced, rel=1e-6)
+        # The tangent (directions held fixed) is the exact Jacobian along this motion: F stays
+        # diagonal, so neither the rotation nor the principal directions turn.
+        fem = CorotationalFEM(tet, MATERIAL, rotation="invertible")
+        p = np.zeros_like(x)
+        p[1, 0] = 1.0
+        jacobian = (fem.elastic_forces_numpy(x + step * p) - fem.elastic_forces_numpy(x - step * p)) / (2 * step)
+        fem.elastic_forces_numpy(x)                         # the rotations and the limit at x
+        np.testing.assert_allclose(fem.stiffness_product_numpy(p), jacobian, rtol=0, atol=1e-6 * np.abs(jacobian).max())
+
+
 # The tests that step a solver with "invertible" compile its whole step, for minutes on this
 # machine (the eigen-solves inline in every kernel): slow set. The element's tests above run by default.
 @pytest.mark.slow

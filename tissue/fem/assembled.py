@@ -24,7 +24,6 @@ import taichi as ti
 
 from .. import backend
 from ..launch import replayed
-from . import corotational
 from .model import BodyModel, Edit, real_numpy
 
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
@@ -59,15 +58,16 @@ def pair_block(lam, mu, ga, gb, ha, hb):
 @ti.func
 def limit_block(m: ti.template(), w: ti.template(), e, ga, gb, rotation: ti.template()):
     """The block (a, b) of an element's active compression limit ("invertible"):
-    V κ Σᵢ (gₐ·dᵢ)(gᵦ·dᵢ) (R dᵢ)(R dᵢ)ᵀ over its active directions dᵢ (zero elsewhere)."""
+    V Σᵢ ψ''(σ̂ᵢ) (gₐ·dᵢ)(gᵦ·dᵢ) (R dᵢ)(R dᵢ)ᵀ over its active directions dᵢ (zero elsewhere)."""
     K = ti.Matrix.zero(float, 3, 3)
     if ti.static(rotation == "invertible"):
         D = w.limited[e]
         if D.norm_sqr() > 0.0:
+            k = w.limit_curvature[e]
             for i in ti.static(range(3)):
                 d = ti.Vector([D[0, i], D[1, i], D[2, i]])
-                K += (ga.dot(d) * gb.dot(d)) * d.outer_product(d)
-            K = (m.elastic[e][0] * corotational.limit_stiffness(m, e)) * (w.R[e] @ K @ w.R[e].transpose())
+                K += (k[i] * ga.dot(d) * gb.dot(d)) * d.outer_product(d)
+            K = m.elastic[e][0] * (w.R[e] @ K @ w.R[e].transpose())
     return K
 
 

@@ -29,23 +29,39 @@ from .material import Material
 from .model import MODEL, BodyModel, real_numpy
 
 # The per-step work of the FEM: element rotations, the principal directions (columns, rotated
-# frame) in which each element's compression limit is active ("invertible"; zero otherwise), the
-# inverted-element count, and the gather buffer (4 per element) or the atomic accumulator (per
-# node), whichever the accumulation uses.
-FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), limited=ti.types.ndarray(), inverted=ti.types.ndarray(),
-                            buffer=ti.types.ndarray(), accumulator=ti.types.ndarray())
+# frame) in which each element's compression limit is active ("invertible"; zero otherwise) and
+# the limit's curvature ψ''(σ̂) along each, the inverted-element count, and the gather buffer (4
+# per element) or the atomic accumulator (per node), whichever the accumulation uses.
+FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), limited=ti.types.ndarray(), limit_curvature=ti.types.ndarray(),
+                            inverted=ti.types.ndarray(), buffer=ti.types.ndarray(), accumulator=ti.types.ndarray())
 
 ROTATIONS = ("large", "polar", "invertible", "linear")
-# The compression limit of "invertible": below COMPRESSION_LIMIT, a principal stretch σ̂ᵢ of the
+# The compression limit of "invertible": below COMPRESSION_LIMIT c, a principal stretch σ̂ of the
 # rotated deformation RᵀF = V Σ̂ Vᵀ (σ̂ negative in an inverted element) pays the extra energy
-# V κ/2 (c − σ̂ᵢ)² with κ = COMPRESSION_STIFFNESS (λ + 2μ). Linear co-rotational energy is finite
-# at σ̂ = 0, so a load of the order of E leaves elements inverted at its minimum (the hanging
-# 240-tet cantilever at E = 1e2 Pa, ν = 0.3: 156 of 240); with this limit the minimum has none.
+# V ψ(σ̂), ψ(σ̂) = κ c² φ(σ̂/c) with κ = COMPRESSION_STIFFNESS (λ + 2μ) and the barrier
+# φ(s) = (s − 1)²/(2s): its expansion to second order at s = 1 is κ/2 (σ̂ − c)² (the quadratic
+# limit this replaced), and its energy and stress grow without bound as the element flattens
+# (σ̂ → 0), as a hyperelastic volumetric term's do. The quadratic limit's stress stayed finite,
+# κ c = 3 (λ + 2μ) at σ̂ = 0: under a load of the order of E (the 240-tet cantilever hanging at
+# E = 1e2 Pa) it held the clamp's corner elements at det F ≈ 0.005 at rest, and any swing flipped
+# them. Below s = BARRIER_END (nearly flat, or inverted) φ is continued by its tangent line at
+# BARRIER_END (Irving et al. 2004 clamp the stretches at a threshold the same way), so an inverted
+# element has a finite energy and a constant restoring stress, ψ'(BARRIER_END c) = −5.1 κ c.
+# The barrier so spans 70 % to 91 % compression. Measured (bench/stability.py, E 1e2 Pa cells and
+# the 10 m/s impact onto the floor): with BARRIER_END 0.5 the hanging beam still ends with elements
+# inverted; with 0.1 (or continued to second order, a stress growing with the inversion) the floor
+# impact gains 700 energy scales to 1e31: the contact stage's correction, computed with the rest
+# compliance, crushes elements whose barrier then stores far more energy than that compliance
+# says.
+# Rational, not a logarithm: float64 log is missing on some backends (Vulkan's GLSL).
+# Linear co-rotational energy alone is finite at σ̂ = 0, so a load of the order of E leaves
+# elements inverted at its minimum (the hanging cantilever at E = 1e2 Pa, ν = 0.3: 156 of 240).
 # The mean of a node's element rotations is taken as singular (no polar factor) below this
 # determinant (1 for alike rotations; 0 when, e.g., I and a half turn average).
 SINGULAR_MEAN = 1e-6
 COMPRESSION_LIMIT = 0.3
 COMPRESSION_STIFFNESS = 10.0
+BARRIER_END = 0.3
 ACCUMULATIONS = ("gather", "atomic", "colouring")
 
 
@@ -127,45 +143,78 @@ def limit_stiffness(m: ti.template(), e):
 
 
 @ti.func
-def limited_directions(S):
+def limit_slope_curvature(kappa, value):
+    """ψ'(σ̂) and ψ''(σ̂) of the compression limit at one principal stretch σ̂ = `value` (both zero
+    at and above c): κ c φ'(s) and κ φ''(s), s = σ̂/c, with φ' = (1 − 1/s²)/2, φ'' = 1/s³ down to
+    BARRIER_END, and φ' held at its value there (φ'' = 0) below."""
+    c = COMPRESSION_LIMIT
+    s = value / c
+    slope, curvature = 0.0, 0.0
+    if s < 1.0:
+        t = ti.max(s, BARRIER_END)
+        slope = kappa * c * 0.5 * (1.0 - 1.0 / (t * t))
+        if s >= BARRIER_END:
+            curvature = kappa / (t * t * t)
+    return slope, curvature
+
+
+@ti.func
+def limit_energy(kappa, value):
+    """ψ(σ̂) = κ c² φ(σ̂/c) of the compression limit at one principal stretch (zero above c)."""
+    c = COMPRESSION_LIMIT
+    s = value / c
+    energy = 0.0
+    if s < 1.0:
+        t = ti.max(s, BARRIER_END)
+        h = s - t
+        energy = kappa * c * c * ((t - 1.0) ** 2 / (2.0 * t) + 0.5 * (1.0 - 1.0 / (t * t)) * h)
+    return energy
+
+
+@ti.func
+def limited_directions(m: ti.template(), e, S):
     """The eigenvectors of the symmetric S whose eigenvalue is below the limit, as columns (the
-    others zero)."""
+    others zero), and the limit's curvature ψ'' along each."""
     values, V = symmetric_eigen(S)
     D = ti.Matrix.zero(float, 3, 3)
+    k = ti.Vector([0.0, 0.0, 0.0])
+    kappa = limit_stiffness(m, e)
     for i in ti.static(range(3)):
         if values[i] < COMPRESSION_LIMIT:
+            _, k[i] = limit_slope_curvature(kappa, values[i])
             for j in ti.static(range(3)):
                 D[j, i] = V[j, i]
-    return D
+    return D, k
 
 
 @ti.func
 def limit_tangent_stress(m: ti.template(), w: ti.template(), e, G):
-    """The compression limit's tangent: κ Σᵢ (dᵢᵀ ε dᵢ) dᵢ dᵢᵀ over its active directions dᵢ
+    """The compression limit's tangent: Σᵢ ψ''(σ̂ᵢ) (dᵢᵀ ε dᵢ) dᵢ dᵢᵀ over its active directions dᵢ
     (the directions held fixed over the step, as the rotation is)."""
     D = w.limited[e]
     P = ti.Matrix.zero(float, 3, 3)
     if D.norm_sqr() > 0.0:
+        k = w.limit_curvature[e]
         eps = 0.5 * (G + G.transpose())
         for i in ti.static(range(3)):
             d = ti.Vector([D[0, i], D[1, i], D[2, i]])
-            P += d.dot(eps @ d) * d.outer_product(d)
-        P *= limit_stiffness(m, e)
+            P += k[i] * d.dot(eps @ d) * d.outer_product(d)
     return P
 
 
 @ti.func
 def compression_stress(m: ti.template(), e, S):
-    """The compression limit's stress in the rotated frame, Σᵢ κ min(0, σ̂ᵢ − c) vᵢ vᵢᵀ, for
-    S = sym(RᵀF) = V Σ̂ Vᵀ: the derivative of V κ/2 Σᵢ min(0, σ̂ᵢ − c)², whose gradient in F is
-    R V diag(κ min(0, σ̂ᵢ − c)) Vᵀ (Irving et al. 2004, P = U P̂(Σ̂) Vᵀ). Pushes an inverted
-    element's negative σ̂ back up through zero."""
+    """The compression limit's stress in the rotated frame, Σᵢ ψ'(σ̂ᵢ) vᵢ vᵢᵀ, for
+    S = sym(RᵀF) = V Σ̂ Vᵀ: the derivative of V Σᵢ ψ(σ̂ᵢ), whose gradient in F is
+    R V diag(ψ'(σ̂ᵢ)) Vᵀ (Irving et al. 2004, P = U P̂(Σ̂) Vᵀ). Pushes an inverted element's
+    negative σ̂ back up through zero."""
     kappa = limit_stiffness(m, e)
     values, V = symmetric_eigen(S)
     P = ti.Matrix.zero(float, 3, 3)
     for i in ti.static(range(3)):
         vi = ti.Vector([V[0, i], V[1, i], V[2, i]])
-        P += kappa * ti.min(0.0, values[i] - COMPRESSION_LIMIT) * vi.outer_product(vi)
+        slope, _ = limit_slope_curvature(kappa, values[i])
+        P += slope * vi.outer_product(vi)
     return P
 
 
@@ -330,9 +379,10 @@ def diagonal_block(m: ti.template(), w: ti.template(), e, corner, rotation: ti.t
     if ti.static(rotation == "invertible"):
         D = w.limited[e]
         if D.norm_sqr() > 0.0:
+            k = w.limit_curvature[e]
             for i in ti.static(range(3)):
                 d = ti.Vector([D[0, i], D[1, i], D[2, i]])
-                K += (V * limit_stiffness(m, e) * g.dot(d) ** 2) * d.outer_product(d)
+                K += (V * k[i] * g.dot(d) ** 2) * d.outer_product(d)
     return w.R[e] @ K @ w.R[e].transpose()
 
 
@@ -341,19 +391,22 @@ def diagonal_block(m: ti.template(), w: ti.template(), e, corner, rotation: ti.t
 
 @ti.func
 def update_rotations(m: ti.template(), w: ti.template(), x: ti.template(), rotation: ti.template(), tol):
-    """Element rotations at x, where the compression limit is active ("invertible"), and the
+    """Element rotations at x, where the compression limit is active and its curvature there
+    ("invertible"), and the
     count of inverted elements (det F ≤ 0): a caller should hear of them."""
     w.inverted[0] = 0
     for e in range(m.counts[1]):
         R = element_rotation(m, e, x, rotation, tol)
         w.R[e] = R
         D = ti.Matrix.zero(float, 3, 3)
+        k = ti.Vector([0.0, 0.0, 0.0])
         if ti.static(rotation == "invertible"):
             G = R.transpose() @ deformation_gradient(m, e, x)
             S = 0.5 * (G + G.transpose())
             if compressed(S):
-                D = limited_directions(S)
+                D, k = limited_directions(m, e, S)
         w.limited[e] = D
+        w.limit_curvature[e] = k
         t = m.tets[e]
         if (x[t[1]] - x[t[0]]).dot((x[t[2]] - x[t[0]]).cross(x[t[3]] - x[t[0]])) <= 0:
             w.inverted[0] += 1
@@ -500,7 +553,8 @@ class CorotationalFEM:
         n, m = model.node_capacity, model.element_capacity
         self.R = ti.ndarray(mat3, m)      # every step recomputes the rotations before using them
         self.R.from_numpy(np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1)))
-        self.work_arrays = dict(R=self.R, limited=ti.ndarray(mat3, m), inverted=ti.ndarray(ti.i32, 1),
+        self.work_arrays = dict(R=self.R, limited=ti.ndarray(mat3, m), limit_curvature=ti.ndarray(vec3, m),
+                                inverted=ti.ndarray(ti.i32, 1),
                                 buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
                                 accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
         self.work = FEM_WORK(**self.work_arrays)

@@ -5,7 +5,7 @@ check's kernel, tissue.solver.step_control, computes it on the device).
 For "polar" the linear co-rotational energy is a true potential of its forces: with R the polar
 rotation of F and ε = RᵀF − I (symmetric), an element stores V (μ ε:ε + λ/2 (tr ε)²), which is
 ½ uᵀ Kₑ u for the local displacement u = Rᵀx − X. "invertible" adds its compression limit
-V κ/2 Σ min(0, σ̂ᵢ − c)² over the signed principal stretches (tissue.fem.corotational). "large"
+V Σ ψ(σ̂ᵢ) over the signed principal stretches, ψ the barrier of tissue.fem.corotational. "large"
 (edge frames) has no energy of its own, its forces are not a gradient: the polar energy is the
 one it approximates, and the one used for it here. "linear" is ε = sym(F) − I.
 """
@@ -13,7 +13,8 @@ one it approximates, and the one used for it here. "linear" is ε = sym(F) − I
 import numpy as np
 import taichi as ti
 
-from .corotational import COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, deformation_gradient, symmetric_eigen
+from .corotational import (BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, deformation_gradient, limit_energy,
+                           symmetric_eigen)
 from .model import BodyModel
 
 
@@ -41,9 +42,19 @@ def element_energies(model: BodyModel, x: np.ndarray, rotation: str) -> np.ndarr
     e = s - 1.0
     energy = volume * (mu * (e * e).sum(1) + 0.5 * lam * e.sum(1) ** 2)
     if rotation == "invertible":
-        d = np.minimum(0.0, s - COMPRESSION_LIMIT)
-        energy = energy + volume * 0.5 * COMPRESSION_STIFFNESS * (lam + 2 * mu) * (d * d).sum(1)
+        energy = energy + volume * limit_energies(COMPRESSION_STIFFNESS * (lam + 2 * mu), s)
     return energy
+
+
+def limit_energies(kappa: np.ndarray, stretches: np.ndarray) -> np.ndarray:
+    """(elements,) Σᵢ ψ(σ̂ᵢ) of the compression limit (per unit volume), κ per element:
+    κ c² φ(σ̂/c) with φ(s) = (s − 1)²/(2s) below c, continued by its tangent line below BARRIER_END."""
+    c = COMPRESSION_LIMIT
+    s = stretches / c
+    t = np.maximum(s, BARRIER_END)
+    h = s - t
+    phi = (t - 1.0) ** 2 / (2.0 * t) + 0.5 * (1.0 - 1.0 / t ** 2) * h
+    return kappa * c * c * np.where(s < 1.0, phi, 0.0).sum(1)
 
 
 def elastic_energy(model: BodyModel, x: np.ndarray, rotation: str) -> float:
@@ -71,6 +82,7 @@ def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template(
         strain = s - 1.0
         energy = volume * (mu * strain.norm_sqr() + 0.5 * lam * strain.sum() ** 2)
         if ti.static(rotation == "invertible"):
-            d = ti.min(s - COMPRESSION_LIMIT, 0.0)
-            energy += volume * 0.5 * COMPRESSION_STIFFNESS * (lam + 2.0 * mu) * d.norm_sqr()
+            kappa = COMPRESSION_STIFFNESS * (lam + 2.0 * mu)
+            for i in ti.static(range(3)):
+                energy += volume * limit_energy(kappa, s[i])
     return energy
