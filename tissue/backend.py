@@ -29,6 +29,8 @@ from .errors import TissueError
 ARCHS = ("auto", "cpu", "cuda", "vulkan")
 PRECISIONS = ("f64", "f32")
 OFFLINE_CACHE_BYTES = 1 << 30
+# Before any module of tissue defines its kernels: the decorators' class check is among what it makes cheap.
+frontend.install()
 
 
 @dataclass(frozen=True)
