@@ -1,6 +1,7 @@
 """Start-up cost of `tissue run`: the command's wall time from empty caches and from caches filled by others.
 
     python -m bench.startup [--scenes incline liver_press liver beam] [--steps 10] [--arch cpu]
+    python -m bench.startup --versus COMMIT [--rounds 3] [--scenes ...]
 
 Each measurement runs `tissue run NAME --no-render --steps N --out TMP` as a subprocess, with the
 Taichi offline cache (TI_OFFLINE_CACHE_FILE_PATH) and the mesh cache (TISSUE_CACHE) in folders of
@@ -18,6 +19,12 @@ Also, in this process: a topology edit of a live 3,960-tetrahedron body (remove 
 them back: `BodyModel.remove_elements` / `add_elements`, with the solver's assembled blocks
 following), its median time over repetitions and the kernels it compiled (none expected).
 Writes bench/results/startup.json.
+
+--versus COMMIT: the *again* run of each scene (caches filled by the same command: what every
+process pays, front end and machine code) by this checkout and by COMMIT (a temporary git worktree),
+alternately for --rounds rounds, each with caches of its own; medians of the wall and of the run's
+CPU seconds (user + system, all threads: what a loaded machine inflates least). Writes
+bench/results/startup_versus.json.
 """
 
 from __future__ import annotations
@@ -25,31 +32,35 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from bench.common import ROOT, machine, print_machine, write_results
+from bench.common import ROOT, alternate_with_commit, machine, print_machine, write_results
 
 SCENES = ("incline", "liver_press", "liver", "beam")
 FILLERS = (("beam",), ("liver", "--set", "dt=0.03"))
 
 
-def run(command: tuple[str, ...], caches: Path, steps: int, arch: str) -> dict:
-    """`tissue run` of `command` (scene and options) with the caches under `caches`; wall and split."""
+def run(command: tuple[str, ...], caches: Path, steps: int, arch: str, checkout: Path = ROOT) -> dict:
+    """`tissue run` of `command` (scene and options) with the caches under `caches`; wall, CPU and split."""
     out = caches / "out"
-    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(caches / "taichi"), TISSUE_CACHE=str(caches / "tissue"))
+    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(caches / "taichi"), TISSUE_CACHE=str(caches / "tissue"),
+               PYTHONPATH=str(checkout))
     argv = [sys.executable, "-m", "tissue", "run", *command, "--no-render", "--steps", str(steps),
             "--arch", arch, "--out", str(out)]
-    start = time.perf_counter()
-    done = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True)
+    start, before = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run(argv, cwd=checkout, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
     stats = json.loads((out / "stats.json").read_text())
-    split = dict(wall_s=wall, mesh_s=stats["mesh_generation_seconds"], compile_s=stats["kernel_compilation_seconds"],
+    split = dict(wall_s=wall, cpu_s=cpu, mesh_s=stats["mesh_generation_seconds"], compile_s=stats["kernel_compilation_seconds"],
                  machine_code_s=stats["kernel_compilation_machine_code_seconds"], kernels=stats["kernels_compiled"], simulate_s=stats["run_seconds"] - stats["run_compile_seconds"])
     split["other_s"] = wall - split["mesh_s"] - split["compile_s"] - split["simulate_s"]
     return {k: round(v, 3) for k, v in split.items()}
@@ -101,11 +112,49 @@ def edit_timing(repeats: int = 50) -> dict:
                 add_ms=round(1e3 * float(np.median(adding[2:])), 3), kernels_compiled=compilation.count() - start)
 
 
+def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, info: dict) -> None:
+    """The `again` run of each scene by this checkout and by `other`, alternately (see the docstring)."""
+    import tempfile
+
+    import numpy as np
+
+    with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
+        filled = set()
+
+        def measure(checkout: Path) -> dict:
+            rows = {}
+            for scene in scenes:
+                caches = Path(tmp) / f"{'this' if checkout == ROOT else 'other'}-{scene}"
+                if caches not in filled:
+                    run((scene,), caches, steps, arch, checkout)
+                    filled.add(caches)
+                rows[scene] = run((scene,), caches, steps, arch, checkout)
+            return rows
+
+        other, runs = alternate_with_commit(
+            other, rounds, measure,
+            lambda rows: "  ".join(f"{s}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU" for s, r in rows.items()),
+            "tissue-startup-versus-")
+    results = {}
+    for scene in scenes:
+        results[scene] = {name: {key: round(float(np.median([r[scene][key] for r in runs[name]])), 3)
+                                 for key in ("wall_s", "cpu_s", "compile_s", "machine_code_s", "kernels")}
+                          for name in runs}
+        this, that = results[scene]["this"], results[scene]["other"]
+        print(f"{scene:<12} again: this {this['wall_s']:5.1f} s wall, {this['cpu_s']:5.1f} s CPU, {this['kernels']:.0f} kernels; "
+              f"{other} {that['wall_s']:5.1f} s wall, {that['cpu_s']:5.1f} s CPU, {that['kernels']:.0f} kernels")
+    write_results("startup_versus", dict(machine=info, other=other, rounds=rounds, steps=steps,
+                                         load_average=[round(x, 2) for x in os.getloadavg()],
+                                         scenes=results, runs=runs))
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", nargs="+", default=list(SCENES))
     parser.add_argument("--steps", type=int, default=10, help="steps of each run (default 10)")
     parser.add_argument("--arch", default=os.environ.get("TISSUE_ARCH", "cpu"))
+    parser.add_argument("--versus", metavar="COMMIT", help="the again runs, alternately with COMMIT's")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds of --versus (default 3)")
     args = parser.parse_args(argv)
 
     from tissue import backend
@@ -113,6 +162,9 @@ def main(argv=None) -> None:
     backend.init(args.arch)
     info = machine()
     print_machine(info)
+    if args.versus:
+        versus(args.versus, args.scenes, args.rounds, args.steps, args.arch, info)
+        return
     print(f"{'scene':<12} {'caches':<6} {'wall s':>7} {'mesh s':>7} {'compile s':>9} {'of it JIT':>9} {'kernels':>7} "
           f"{'simulate s':>10} {'other s':>7}")
     edit = edit_timing()

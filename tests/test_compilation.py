@@ -33,6 +33,9 @@ def test_first_launch_of_each_instance_is_counted_and_timed(backend):
     shift(2)                                                # another template value: another instance
     shift(2)
     assert (compilation.snapshot() - start).count == 3
+    mine = compilation.instances()[-3:]                     # one record per instance, in order, all three parts
+    assert [i.kernel for i in mine] == ["fill", "shift", "shift"]
+    assert all(i.frontend_s > 0 and i.module_s > 0 and i.machine_code_s > 0 for i in mine)
     assert compilation.count() >= 3 and compilation.seconds() >= first.seconds
     assert values[3] == pytest.approx(math.sin(2.0 * 3) + 5)
 

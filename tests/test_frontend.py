@@ -54,3 +54,25 @@ def test_memoised_source_equals_inspect_and_is_a_fresh_list():
     assert (lines, start) == frontend._original_sourcelines(_kernel) and lines[0].startswith("def _kernel")
     lines.clear()                                   # a caller's edit does not reach the memo
     assert frontend._getsourcelines_list(_kernel)[0] == frontend._original_sourcelines(_kernel)[0]
+
+
+def _probe(seen):
+    """Asks as Taichi's decorators do: is the line two frames up (where this is called) a class statement?"""
+    seen.append((frontend._inside_class(2), frontend._original_inside_class(2)))
+
+
+def test_class_check_equals_taichi_own():
+    seen = []
+
+    class Inside: _probe(seen)   # noqa: E701 (one line: the line asked about is a class statement)
+
+    _probe(seen)
+    assert seen == [(True, True), (False, False)]
+    assert frontend._inside_class(10_000) is False     # no frame that far up, as Taichi answers
+
+
+def test_memoised_fill_equals_textwrap():
+    import textwrap
+
+    for line in ("\tif a:\t# tab", "    x = 1", ""):
+        assert frontend._fill(line, tabsize=4, width=9999) == textwrap.fill(line, tabsize=4, width=9999)

@@ -29,6 +29,8 @@ from .errors import TissueError
 ARCHS = ("auto", "cpu", "cuda", "vulkan")
 PRECISIONS = ("f64", "f32")
 OFFLINE_CACHE_BYTES = 1 << 30
+# Before any module of tissue defines its kernels: the decorators' class check is among what it makes cheap.
+frontend.install()
 
 
 @dataclass(frozen=True)
@@ -90,7 +92,9 @@ def init(arch: str | None = None, precision: str | None = None, **kwargs) -> Bac
             offline_cache_max_size_of_files=OFFLINE_CACHE_BYTES, advanced_optimization=passes != "0",
             log_level=kwargs.pop("log_level", ti.WARN), **kwargs)
     compilation.install(per_kernel=passes == "auto")
-    frontend.install()
+    from . import launch    # (it imports this module)
+
+    launch.install()
     got = ti.lang.impl.current_cfg().arch
     if got != wanted:
         ti.reset()

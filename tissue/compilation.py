@@ -16,6 +16,8 @@ generation). Process-wide totals:
     start = compilation.snapshot(); ...; compilation.snapshot() - start   the share of a region
     compilation.seconds_by_kernel(cpu=False)     the first two parts per kernel function, wall or
                                                  the process's CPU seconds (what load does not inflate)
+    compilation.instances()                      per kernel instance, CPU seconds of each part:
+                                                 front end (source to IR), module, machine code
 
 Not counted: the SNode trees' own compilation (fields).
 
@@ -44,6 +46,17 @@ _original_launch = Kernel.launch_kernel
 _by_kernel: dict[str, list[float]] = {}   # [wall, CPU] seconds per kernel function, over its instances
 _per_kernel = False
 _without_passes: dict = {}                # Taichi Kernel -> which instances (by their arguments) compile without
+_instances: dict[int, "Instance"] = {}    # id of the compiled kernel -> its record, in compilation order
+
+
+@dataclass
+class Instance:
+    """One compiled kernel instance: CPU seconds of the process in each part of its compilation."""
+
+    kernel: str
+    frontend_s: float = 0.0        # Python source to Taichi IR (every process)
+    module_s: float = 0.0          # IR to LLVM module, or the offline cache's copy
+    machine_code_s: float = 0.0    # the first launch: machine code (not cached), and one run
 
 
 @dataclass(frozen=True)
@@ -73,6 +86,7 @@ def _materialize(self, key=None, args=None, arg_features=None):
     _original_materialize(self, key, args, arg_features)
     if len(self.compiled_kernels) == before:    # key=None named an instance compiled already
         return
+    frontend_cpu = time.process_time()
     kernel = next(reversed(self.compiled_kernels.values()))   # the one just added
     prog = impl.get_runtime().prog
     with _passes_for(self, args):
@@ -81,6 +95,7 @@ def _materialize(self, key=None, args=None, arg_features=None):
     _ir_seconds += elapsed
     _count += 1
     _not_yet_launched.add(id(kernel))
+    _instances[id(kernel)] = Instance(self.func.__name__, frontend_cpu - cpu, time.process_time() - frontend_cpu)
     totals = _by_kernel.setdefault(self.func.__name__, [0.0, 0.0])
     totals[0] += elapsed
     totals[1] += time.process_time() - cpu
@@ -116,10 +131,11 @@ def _launch_kernel(self, t_kernel, *args):
     if id(t_kernel) not in _not_yet_launched:
         return _original_launch(self, t_kernel, *args)
     _not_yet_launched.discard(id(t_kernel))
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     result = _original_launch(self, t_kernel, *args)
     impl.get_runtime().prog.synchronize()
     _machine_code_seconds += time.perf_counter() - start
+    _instances[id(t_kernel)].machine_code_s = time.process_time() - cpu
     return result
 
 
@@ -146,6 +162,11 @@ def seconds_by_kernel(cpu: bool = False) -> dict[str, float]:
     """Seconds of source to module per kernel function name (all its instances) in this process:
     wall, or CPU of the process (what a loaded machine does not inflate)."""
     return {name: totals[1 if cpu else 0] for name, totals in _by_kernel.items()}
+
+
+def instances() -> list[Instance]:
+    """Every kernel instance this process compiled, in order, with the CPU seconds of each part."""
+    return list(_instances.values())
 
 
 def snapshot() -> Compiled:

@@ -18,11 +18,16 @@ so replays are used on the CPU only, where the tests exercise them; other archs 
 
 `host_view(ndarray)` is, on the CPU, a numpy array over an ndarray's own memory: reads without
 Taichi's copy kernel (a parallel launch: milliseconds on busy cores), and BLAS on kernels' arrays.
+`install()` (called by `tissue.backend.init`) makes every ndarray's `from_numpy` / `to_numpy` on
+the CPU a numpy copy through that view: Taichi compiles a copy kernel per element type, shape and
+dtype (about 11 of them on a scene's start, whose machine code every process makes again, ~0.3 s)
+and launches one per call.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from taichi._lib import core as _ti_core
 from taichi.lang import impl, runtime_ops
 from taichi.lang._ndarray import Ndarray
 from taichi.lang.argpack import ArgPack, ArgPackType
@@ -130,6 +135,40 @@ def _read_return(primal, context, kind, i):
 def replayed(kernel) -> Replayed:
     """`kernel`, launched by replaying its recorded context when the arguments repeat."""
     return Replayed(kernel)
+
+
+_original_copies = {name: getattr(Ndarray, name) for name in (
+    "_ndarray_from_numpy", "_ndarray_to_numpy", "_ndarray_matrix_from_numpy", "_ndarray_matrix_to_numpy")}
+
+
+def _on_cpu() -> bool:
+    return impl.current_cfg().arch in (_ti_core.x64, _ti_core.arm64)
+
+
+def _from_numpy(self, arr, as_vector=None):
+    """Taichi's from_numpy (same checks, same casts: numpy's unsafe cast is C's, as the kernel's),
+    as a numpy copy on the CPU."""
+    if not (_on_cpu() and isinstance(arr, np.ndarray) and tuple(self.arr.total_shape()) == tuple(arr.shape)
+            and arr.size):
+        original = _original_copies["_ndarray_from_numpy" if as_vector is None else "_ndarray_matrix_from_numpy"]
+        return original(self, arr) if as_vector is None else original(self, arr, as_vector)
+    runtime_ops.sync()                    # kernels still writing it
+    np.copyto(host_view(self), arr, casting="unsafe")
+
+
+def _to_numpy(self, as_vector=None):
+    if not (_on_cpu() and self._get_nelement()):
+        original = _original_copies["_ndarray_to_numpy" if as_vector is None else "_ndarray_matrix_to_numpy"]
+        return original(self) if as_vector is None else original(self, as_vector)
+    runtime_ops.sync()
+    return host_view(self).copy()
+
+
+def install() -> None:
+    """from_numpy / to_numpy of every ndarray as numpy copies on the CPU (idempotent; other archs,
+    and empty arrays, keep Taichi's)."""
+    Ndarray._ndarray_from_numpy = Ndarray._ndarray_matrix_from_numpy = _from_numpy
+    Ndarray._ndarray_to_numpy = Ndarray._ndarray_matrix_to_numpy = _to_numpy
 
 
 def host_view(array: Ndarray) -> np.ndarray:

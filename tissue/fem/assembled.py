@@ -343,10 +343,11 @@ def symmetric_assemble(m: ti.template(), w: ti.template(), a: ti.template(), rot
             gp, hp, gq, hq = column(grads, p), column(rotated, p), column(grads, q), column(rotated, q)
             code = a.slots[e][k]
             j = code // 2
-            if code % 2 == 0:
-                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gp, gq, hp, hq) + limit_block(m, w, e, gp, gq, rotation)
-            else:
-                a.blocks[j] = a.blocks[j] + pair_block(lam, mu, gq, gp, hq, hp) + limit_block(m, w, e, gq, gp, rotation)
+            ga, ha, gb, hb = gp, hp, gq, hq
+            if code % 2 != 0:   # corner q has the lower node: the block (q, p), the transpose
+                ga, ha, gb, hb = gq, hq, gp, hp
+            # One call site for both orders: a kernel's size is what its compilation costs.
+            a.blocks[j] = a.blocks[j] + pair_block(lam, mu, ga, gb, ha, hb) + limit_block(m, w, e, ga, gb, rotation)
 
 
 @ti.func

@@ -91,6 +91,11 @@ class Scheme:
     smoothing_degree: int    # of the multigrid's Chebyshev smoother
     unroll: int              # CG iterations per launch on the parallel path
 
+    @property
+    def serial(self) -> bool:
+        """One CPU thread runs the whole step (the symmetric layout's assembly would race otherwise)."""
+        return self.layout == "symmetric"
+
 
 # The step's state on the device: nodal vectors, the block-diagonal inverse (preconditioners),
 # the CG scalars (slots above), blocked partial sums, and the step's parameters (slots below).
@@ -538,9 +543,9 @@ def _stiffness_diagonal(k: ti.template(), o: ti.template(), v):
 
 
 @ti.func
-def _precondition_coupled(k: ti.template(), o: ti.template(), first: ti.template()):
-    """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first), and rᵀz into
-    partial[0] in place of the node-by-node value."""
+def _precondition_coupled(k: ti.template(), o: ti.template(), first):
+    """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first, a value known at
+    compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value."""
     if ti.static(o.preconditioner == "multigrid"):
         multigrid.apply(k, o, k.r, k.z)
         for b in range(_blocks(k)):
@@ -548,7 +553,7 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first: ti.template
             if k.scalars[DONE] == 0:
                 begin, end = _block_nodes(k, b)
                 for v in range(begin, end):
-                    if ti.static(first):
+                    if first:
                         k.p[v] = k.z[v]
                     rz += k.r[v].dot(k.z[v])
             k.partial[0, b] = rz
@@ -556,6 +561,8 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first: ti.template
 
 @ti.func
 def _begin(k: ti.template(), o: ti.template(), tol):
+    """Rotations, the assembled matrix, forces and the right-hand side: r, and z = p = P⁻¹ r
+    node by node (the coupled preconditioner and the CG's scalars follow: _start_cg)."""
     h = k.parameters[DT]
     mass_factor, stiffness_factor = factors(k)
     g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
@@ -596,7 +603,11 @@ def _begin(k: ti.template(), o: ti.template(), tol):
             rr += rhs.dot(rhs)
         k.partial[0, b] = rz
         k.partial[1, b] = rr
-    _precondition_coupled(k, o, True)
+
+
+@ti.func
+def _start_cg(k: ti.template()):
+    """The CG's scalars once z = P⁻¹ r is complete."""
     for _ in range(1):
         delta = _sum_partials(k, 0)
         k.scalars[DELTA] = delta
@@ -607,7 +618,9 @@ def _begin(k: ti.template(), o: ti.template(), tol):
 
 
 @ti.func
-def _iteration(k: ti.template(), o: ti.template()):
+def _descend(k: ti.template(), o: ti.template()):
+    """q = A p, α, dv += α p, r -= α q, and z = P⁻¹ r node by node (the coupled preconditioner and
+    the next direction follow: _next_direction)."""
     if ti.static(o.operator == "matrix_free"):
         for e in range(k.counts[1]):  # element stage, skipped once converged
             if k.scalars[DONE] == 0:
@@ -649,7 +662,11 @@ def _iteration(k: ti.template(), o: ti.template()):
                 rr += r.dot(r)
         k.partial[0, b] = rz
         k.partial[1, b] = rr
-    _precondition_coupled(k, o, False)
+
+
+@ti.func
+def _next_direction(k: ti.template()):
+    """β, the stopping rule, and p = z + β p, once z = P⁻¹ r is complete."""
     for _ in range(1):
         if k.scalars[DONE] == 0:
             delta = _sum_partials(k, 0)
@@ -664,6 +681,31 @@ def _iteration(k: ti.template(), o: ti.template()):
     for v in range(k.counts[0]):
         if k.scalars[DONE] == 0:
             k.p[v] = k.z[v] + k.scalars[BETA] * k.p[v]
+
+
+@ti.func
+def _iteration(k: ti.template(), o: ti.template()):
+    _descend(k, o)
+    _precondition_coupled(k, o, False)
+    _next_direction(k)
+
+
+@ti.func
+def _solve_serial(k: ti.template(), o: ti.template()):
+    """CG from the right-hand side of _begin to convergence, in one thread: a runtime loop whose
+    first pass starts the CG and the others iterate, so that the preconditioner (a whole V-cycle
+    for multigrid) is inlined once. The size of the kernel is what its compilation costs in every
+    process (Taichi's front end, LLVM's machine code)."""
+    first = 1
+    while first == 1 or k.scalars[DONE] == 0:
+        if first == 0:
+            _descend(k, o)
+        _precondition_coupled(k, o, first == 1)
+        if first == 1:
+            _start_cg(k)
+        else:
+            _next_direction(k)
+        first = 0
 
 
 @ti.func
@@ -706,6 +748,8 @@ def _multigrid(k, o, *_) -> bool:
 @ti.kernel
 def _begin_parallel(k: STEP, o: ti.template(), tol: ti.f64):
     _begin(k, o, tol)
+    _precondition_coupled(k, o, True)
+    _start_cg(k)
 
 
 @compilation.without_ir_passes(_multigrid)
@@ -729,14 +773,14 @@ def _end_parallel(k: STEP, o: ti.template()) -> REPORT:
 @compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> REPORT:
-    """The whole step ("step"), or its "begin" or "solve" part, in one CPU thread."""
+    """The whole step ("step"), or its "begin" (up to the right-hand side) or "solve" (the CG) part,
+    in one CPU thread."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         if ti.static(part != "solve"):
             _begin(k, o, tol)
         if ti.static(part != "begin"):
-            while k.scalars[DONE] == 0:
-                _iteration(k, o)
+            _solve_serial(k, o)
             _end(k)
     return _report(k)
 
@@ -750,4 +794,9 @@ def apply_preconditioner(k: STEP, o: ti.template(), r: ti.types.ndarray(), z: ti
     """z = B r alone (tests): the multigrid V-cycle with the matrix of the last step."""
     for _ in range(1):
         k.scalars[DONE] = 0
-    multigrid.apply(k, o, r, z)
+    if ti.static(o.serial):   # a one-thread scheme's V-cycle: serial loops
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            multigrid.apply(k, o, r, z)
+    else:
+        multigrid.apply(k, o, r, z)

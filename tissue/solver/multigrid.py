@@ -206,28 +206,36 @@ def _residual(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.templa
 
 
 @ti.func
-def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template(), from_zero: ti.template()):
-    """z += S res (Chebyshev in D⁻¹A); from zero, res = r and z = S r."""
+def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template(), from_zero):
+    """z += S res (Chebyshev in D⁻¹A); from zero (known at compile or run time), res = r and z = S r."""
     for v in range(k.counts[0]):
         if _running(k):
-            if ti.static(from_zero):
+            if from_zero:
                 k.res[v] = r[v]
                 z[v] = ti.Vector([0.0, 0.0, 0.0])
             d = (k.block_inverse[v] @ k.res[v]) / k.coefficients[0]
             k.d[v] = d
             z[v] = z[v] + d
-    for step in ti.static(range(o.smoothing_degree - 1)):
-        ie.multiply(k, o, k.d)
-        mass_factor, stiffness_factor = ie.factors(k)
-        for v in range(k.counts[0]):
-            if _running(k):
-                k.res[v] = k.res[v] - ie.operator_row(k, o, v, k.d, mass_factor,
-                                                                          stiffness_factor)
-        for v in range(k.counts[0]):
-            if _running(k):
-                d = k.coefficients[1 + 2 * step] * k.d[v] + k.coefficients[2 + 2 * step] * (k.block_inverse[v] @ k.res[v])
-                k.d[v] = d
-                z[v] = z[v] + d
+    if ti.static(o.serial):   # one thread: a runtime loop, the step inlined once
+        for step in range(o.smoothing_degree - 1):
+            _chebyshev_step(k, o, z, step)
+    else:
+        for step in ti.static(range(o.smoothing_degree - 1)):
+            _chebyshev_step(k, o, z, step)
+
+
+@ti.func
+def _chebyshev_step(k: ti.template(), o: ti.template(), z: ti.template(), step):
+    ie.multiply(k, o, k.d)
+    mass_factor, stiffness_factor = ie.factors(k)
+    for v in range(k.counts[0]):
+        if _running(k):
+            k.res[v] = k.res[v] - ie.operator_row(k, o, v, k.d, mass_factor, stiffness_factor)
+    for v in range(k.counts[0]):
+        if _running(k):
+            d = k.coefficients[1 + 2 * step] * k.d[v] + k.coefficients[2 + 2 * step] * (k.block_inverse[v] @ k.res[v])
+            k.d[v] = d
+            z[v] = z[v] + d
 
 
 @ti.func
@@ -256,9 +264,21 @@ def _coarse_correction(k: ti.template(), z: ti.template()):
 
 @ti.func
 def apply(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
-    """z = B r, one symmetric V-cycle; every loop is skipped once the solver's CG has converged."""
-    _smooth(k, o, r, z, True)
-    _residual(k, o, r, z)
-    _coarse_correction(k, z)
-    _residual(k, o, r, z)
-    _smooth(k, o, r, z, False)
+    """z = B r, one symmetric V-cycle: smooth, residual, coarse correction, residual, smooth; every
+    loop is skipped once the solver's CG has converged."""
+    if ti.static(o.serial):
+        # One thread: the stages as a runtime loop, so that each product with A is inlined once
+        # (a kernel's size is what its compilation costs in every process).
+        for stage in range(4):
+            if stage == 0 or stage == 3:
+                _smooth(k, o, r, z, stage == 0)
+            else:
+                _residual(k, o, r, z)
+                if stage == 1:
+                    _coarse_correction(k, z)
+    else:   # parallel loops stay at the kernel's top level
+        _smooth(k, o, r, z, True)
+        _residual(k, o, r, z)
+        _coarse_correction(k, z)
+        _residual(k, o, r, z)
+        _smooth(k, o, r, z, False)
