@@ -21,8 +21,9 @@ the 1 + keeps it defined for q = 0.)
 
 Methods (each in its module; this one validates, uploads and dispatches):
   * "auto" (the contact stage's default): Gauss-Seidel over the whole problem while it makes
-    progress (every AUTO_PHASE sweeps at least halve the residual, at a rate that reaches the
-    tolerance within AUTO_SWEEPS, one launch), then "newton" from where it stopped. Warm-started
+    progress (every AUTO_PHASE sweeps, AUTO_PHASE_LARGE from AUTO_LARGE contacts on, at least
+    halve the residual, at a rate that reaches the tolerance within AUTO_SWEEPS, one launch), then
+    "newton" from where it stopped. Warm-started
     problems of a few hundred rows mostly end within the sweeps, at microseconds each; the rest
     (many strongly coupled contacts, often more rows than the dofs they move: the press plate's
     2,382-3,465 rows, where a sweep gains ~1 % of the residual) end in a few Newton steps
@@ -68,6 +69,8 @@ ANDERSON_WINDOW = 5       # Gauss-Seidel's Anderson acceleration: sweeps combine
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
 AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE sweeps halve the residual, at
                                   # a rate that reaches the tolerance within AUTO_SWEEPS, then Newton
+AUTO_LARGE, AUTO_PHASE_LARGE = 1000, 4  # ... phases of 4 sweeps from 1,000 contacts on, where a sweep
+                                        # costs tens of ms (the press plate's 1,155 contacts, factored: ~20)
 
 
 @dataclass
@@ -317,10 +320,13 @@ class FrictionalContactSolver:
 
     def _auto(self, max_iterations, tol_abs):
         """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
-        sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps at least halve the residual, at
-        a rate that reaches the tolerance within AUTO_SWEEPS sweeps, in one launch; then Newton from where it stopped (the problems whose
-        sweeps crawl: many coupled contacts, W ill-conditioned or singular)."""
-        its = self._sweeps(min(AUTO_SWEEPS, max_iterations), tol_abs, AUTO_PHASE)
+        sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps (AUTO_PHASE_LARGE on large
+        problems, where sweeps cost more than Newton's first steps) at least halve the residual, at
+        a rate that reaches the tolerance within AUTO_SWEEPS sweeps, in one launch; then Newton
+        from where it stopped (the problems whose sweeps crawl: many coupled contacts, W
+        ill-conditioned or singular)."""
+        phase = AUTO_PHASE if self.n < AUTO_LARGE else AUTO_PHASE_LARGE
+        its = self._sweeps(min(AUTO_SWEEPS, max_iterations), tol_abs, phase)
         if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:
             return its
         return its + self._newton(max_iterations - its, tol_abs)
