@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import fields, replace
 
 import numpy as np
 
@@ -29,13 +30,17 @@ def record_press() -> list[dict]:
     """The press plate cell's problems, every STEP_EVERY-th step (the last 100-step run's)."""
     from bench import stability
     from bench.contact_problems import Recording
+    from tissue.contact import FactoredDelassus
 
     cell = next(c for c in stability.contact_cells(("polar",)) if c["case"] == "press")
     problems = []
 
     def keep(index, W, q, mu, r0):
         if index % STEP_EVERY == 0 and len(q) >= 1000:
-            problems.append(dict(step=index + 1, W=W, q=q, mu=mu, r0=r0))
+            # Copies: the stage keeps its dense W in a buffer it reuses the next step.
+            W = replace(W, **{f.name: np.copy(getattr(W, f.name)) for f in fields(W)}) \
+                if isinstance(W, FactoredDelassus) else np.array(W)
+            problems.append(dict(step=index + 1, W=W, q=np.array(q), mu=np.array(mu), r0=np.array(r0)))
 
     with Recording(keep):
         stability.simulate(cell)
