@@ -561,6 +561,29 @@ def test_newton_soft_body_more_rows_than_dofs(solve, method, monkeypatch):
     assert warm.converged and natural_map(W, 1.05 * q, mu, r2) <= 1e-9 and len(steps) - cold < cold
 
 
+@pytest.mark.parametrize("eps", [1e-3, 1e-2])
+def test_newton_proximal_points_solve_the_true_problem(solve, monkeypatch, eps):
+    """Newton's proximal points (newton.CRAWL = 1: from the first step on) on a singular
+    soft-body problem (60 contacts on 15 nodes: 180 rows, 45 dofs): steps on (W + εI, q - ε r_k), the anchor r_k moving,
+    end at a solution of the true problem: its natural-map residual, recomputed here with W (not
+    W + εI), ≤ 1e-9, where the regularised problem's own solution is off by about ε |r|."""
+    from tissue.contact import newton
+
+    steps, newton_step = [], newton.newton_step
+    monkeypatch.setattr(newton, "newton_step", lambda W, *a, **k: steps.append(W is None) or newton_step(W, *a, **k))
+    monkeypatch.setattr(newton, "CRAWL", 1.0)
+    monkeypatch.setattr(newton, "PROXIMAL", eps)
+    rng = np.random.default_rng(7)
+    W, _, mu = soft_body_problem(60, 15, rng)
+    W /= np.mean(np.diagonal(W))
+    q, _ = solvable_problem(W, mu, rng)
+    r, info = solve(W, q, mu, tol=1e-9, max_iterations=300, method="newton")
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-9 and steps and all(steps)
+    # The regularised problem (W + εI, q) alone, an anchor that never moves: off the true one.
+    r_eps, _ = solve(W + eps * np.eye(len(q)), q, mu, tol=1e-11, max_iterations=300, method="newton")
+    assert natural_map(W, q, mu, r_eps) > 1e3 * 1e-9
+
+
 def test_newton_factored_and_sparse_match_dense(solve):
     """The same problem with W dense, block-sparse and as its factors: the same reactions."""
     rng = np.random.default_rng(5)

@@ -5,8 +5,12 @@ exact), the frictional contact solver, and the stage that ties them after the fr
     detection.py           proximity of surface points to obstacles and to other soft bodies
     constraints.py         H (normal, two tangents per contact; attachments) and its JDS storage
     compliance.py          W = Σ h (H R) A₀⁻¹ (H R)ᵀ by warping, or h H A⁻¹ Hᵀ exactly; the correction
-    frictional_contact.py  Coulomb friction by projected block Gauss-Seidel; the solvers' entry point
-    newton.py              ... by semi-smooth Newton on the Alart–Curnier function (many coupled contacts)
+    frictional_contact.py  the frictional contact problem (Coulomb friction): the solvers' entry point and dispatch
+    cone.py                ... one contact's pieces: cone projection, natural-map error, exact 3×3 local solve
+    layouts.py             ... W on the device (dense, block-CSR, factored) and the kernels' argpacks
+    gauss_seidel.py        ... projected block Gauss-Seidel with Anderson acceleration (one launch)
+    jacobi.py              ... relaxed block Jacobi (parallel)
+    newton.py              ... semi-smooth Newton on the Alart–Curnier function (many coupled contacts)
     pipeline.py            ContactStage and its settings (Contact): detection → H → W → LCP → correction, timed
     layer.py               Obstacle scene options, the Contact group in a scene, the Simulation stage
 """

@@ -28,6 +28,18 @@ rows outnumber their nodes' dofs) were cut to tiny ones, and Newton crawled to t
 
 Globalisation: a backtracking line search on ½|Φ|² (Armijo); when it fails (nonsmooth kinks, a
 singular step), GS_FALLBACK sweeps of projected Gauss-Seidel from the current r, then Newton again.
+
+Crawling (the shift's boost at CRAWL: steps cut again and again): proximal points (Rockafellar
+1976) from there on. With more rows than the dofs they move, reactions can shift along W's null
+space without changing any velocity, and a solution may lie a finite distance along it (the
+cones decide where); the shift damps exactly those steps, and Newton crawled there (liver_press
+at 450 rows: 12 closing contacts, |Φ| falling by 1 % a step to the cap; Gauss-Seidel's sweeps no
+better). A proximal point solves the problem (W + εI, q - ε r_k) instead, W + εI definite, with
+ε = PROXIMAL × W's mean diagonal: its solution r_{k+1} is unique and Newton's steps on it are
+not damped along the null space; the anchor r_k moves to the iterate after PROXIMAL_STEPS steps,
+or once the subproblem's |Φ| is at most PROXIMAL_INNER of the true problem's error, and a fixed
+point (r_{k+1} = r_k) solves the true problem, whose error, not the subproblem's, stops the
+iterations.
 """
 
 from __future__ import annotations
@@ -43,6 +55,10 @@ BOOST_MAX = 1e8          # the shift grows tenfold after each step the line sear
 SINGLE_ROWS = 600        # Newton systems of this many rows and more: LU in float32, refined in float64
 REFINEMENTS = 4          # ... at most this many solves with it
 REFINED = 1e-10          # ... to this relative residual, else float64's LU
+CRAWL = 1e3              # proximal points once the boost reaches this (three steps cut net)
+PROXIMAL = 1e-3          # ... ε of W + εI, × W's mean diagonal
+PROXIMAL_STEPS = 5       # ... Newton steps on one proximal problem at most
+PROXIMAL_INNER = 0.1     # ... or until its |Φ| is at most this fraction of the true problem's error
 GS_FALLBACK = 10         # Gauss-Seidel sweeps run when the line search gives up
 
 
@@ -150,18 +166,37 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
     rho = _rho(diagonal_blocks)
     r = np.asarray(r0, dtype=np.float64).reshape(n, 3).copy()
     its, boost, shared = 0, 1.0, _Shared()
+    anchor, eps, inner = None, 0.0, 0
     while True:
         u = (W @ r.ravel() + q).reshape(n, 3)          # afresh: the stopping rule reads the exact u
         err2 = error2(r.ravel(), u.ravel())
         if err2 <= tol_abs ** 2 or its >= max_iterations:
             return r.ravel(), u.ravel(), its, err2
-        phi, A, B = _alart_curnier(r, u, mu, rho)
+        if anchor is None and boost >= CRAWL:
+            # Crawling: proximal points from here on (see the module docstring); W_block among
+            # the closing contacts (the same ids twice) then carries + εI.
+            eps = PROXIMAL * np.mean(np.trace(diagonal_blocks, axis1=1, axis2=2)) / 3.0
+            anchor, inner, boost, shared = r.copy(), 0, 1.0, _Shared()
+        if anchor is not None and inner >= PROXIMAL_STEPS:
+            anchor, inner = r.copy(), 0
+        ue = u if anchor is None else u + eps * (r - anchor)   # the velocities of the problem stepped on
+        phi, A, B = _alart_curnier(r, ue, mu, rho)
+        if anchor is not None and inner and np.linalg.norm(phi) <= PROXIMAL_INNER * np.sqrt(err2):
+            anchor, inner, ue = r.copy(), 0, u
+            phi, A, B = _alart_curnier(r, ue, mu, rho)
         merit = 0.5 * np.sum(phi * phi)
-        dr = newton_step(W, W_block, r, phi, A, B, r[:, 0] - rho * u[:, 0] > 0, boost, shared)
-        du = (W @ dr.ravel()).reshape(n, 3)
+        closing = r[:, 0] - rho * ue[:, 0] > 0
+        if anchor is None:
+            dr = newton_step(W, W_block, r, phi, A, B, closing, boost, shared)
+            du = (W @ dr.ravel()).reshape(n, 3)
+        else:
+            block = lambda rows, cols: W_block(rows, cols) + (eps * np.eye(3 * len(rows)) if rows is cols else 0.0)
+            dr = newton_step(None, block, r, phi, A, B, closing, boost, shared)
+            du = (W @ dr.ravel()).reshape(n, 3) + eps * dr
+            inner += 1
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
-            trial = _alart_curnier(r + t * dr, u + t * du, mu, rho, jacobian=False)[0]
+            trial = _alart_curnier(r + t * dr, ue + t * du, mu, rho, jacobian=False)[0]
             if 0.5 * np.sum(trial * trial) <= (1.0 - 2.0 * ARMIJO * t) * merit:
                 accepted = True
                 break

@@ -34,7 +34,7 @@ import numpy as np
 import taichi as ti
 
 from ..contact.delassus import FactoredDelassus
-from ..contact.frictional_contact import _contact_error2, _local_solve
+from ..contact.cone import _contact_error2, _local_solve
 from ..errors import TissueError
 from ..launch import replayed
 

@@ -1,0 +1,199 @@
+"""Projected block Gauss-Seidel on the frictional contact problem (Jean & Moreau; Duriez et al.
+2006), with Anderson acceleration: the kernel, all sweeps in one launch.
+
+Contacts are swept in order, each contact's 3×3 problem solved exactly with the others' reactions
+fixed (tissue.contact.cone._local_solve). The sweep is sequential by nature, so the whole
+iteration loop runs serially inside ONE Taichi kernel (a launch costs more than a sweep of a few
+hundred contacts). A sweep reads W once (contact i gathers rows 3i..3i+2 of W times r); the exact
+residual needs u = W r + q, a second pass, so it is computed only when the errors met during the
+sweep say "converged" (plus at the start, which lets a warm start that already solves the
+problem cost 0 sweeps). Between two residual checks a sweep passes over the contacts that carry
+nothing and were apart (u_n > 0) when last solved, but for every REVISIT_EVERY-th sweep: the check
+sees them all again, so the stopping rule is unchanged, and most contacts within an alarm distance
+never touch (the pressed liver: ~140 of ~155).
+
+Anderson acceleration (window m = the history's size, see `history_shape`): a sweep is a
+fixed-point map r <- G(r); after each sweep the next start is the combination of the last m + 1
+sweeps' results whose residuals G(r) - r combine to the least norm (type II, Walker & Ni 2011),
+projected on the cones. A combined start whose sweep error exceeds the previous start's is
+rejected (back to the plain sweep's result, history cleared), at most ANDERSON_RESTARTS times,
+then plain sweeps; the stopping test is unchanged (the exact residual). On the contact stage's
+strongly coupled soft-body problems it cuts the sweeps to a tolerance 2-4x (bench/contact.py).
+"""
+
+import taichi as ti
+
+from .cone import _block, _contact_error2, _local_solve, _project, _vec
+from .layouts import DELASSUS, FACTORED, PROBLEM, _refresh, _residual, _spread, _wr
+
+ANDERSON_RESTARTS = 10    # rejecting a combination that starts worse than the sweep before, at most this often
+REVISIT_EVERY = 8         # every this many sweeps, one that visits the contacts apart too
+
+
+def history_shape(window: int, rows: int) -> tuple[tuple, tuple]:
+    """The shapes of PROBLEM's hist and gram for Anderson's window (0: plain sweeps, one element)."""
+    return ((2 * window + 3, rows), (window, 2 * window + 2)) if window else ((1, 1), (1, 1))
+
+
+@ti.func
+def _save(r: ti.template(), hist: ti.template(), row, on):
+    if on > 0:
+        for l in range(r.shape[0]):
+            hist[row, l] = r[l]
+
+
+@ti.func
+def _accelerate(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), window, est, state):
+    """After a sweep whose start had the running error `est`: state = (Anderson steps since the
+    last restart, restarts left, the previous start's error). A combined start worse than the
+    previous one is rejected: back to the previous sweep's result (what plain Gauss-Seidel had),
+    history cleared; after ANDERSON_RESTARTS rejections, plain sweeps only."""
+    since, on, last = ti.cast(state[0], ti.i32), ti.cast(state[1], ti.i32), state[2]
+    if since > 1 and est > last:
+        for l in range(r.shape[0]):
+            r[l] = hist[2 * window, l]
+        since, on = 0, on - 1
+    else:
+        last = est
+        _anderson(r, hist, gram, mu, since, window)
+        since += 1
+    return ti.Vector([since, on, last])
+
+
+@ti.func
+def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), k, m):
+    """Anderson step after sweep k (k = 0: the first since a restart). r holds g = G(x), the
+    sweep's result, and hist[2m + 2] the x it started from. hist rows 0..m-1 hold ΔG, rows m..2m-1
+    ΔF (ring buffers, F = G(x) - x), rows 2m, 2m + 1 the previous g and f; gram[i, j] = ΔF_i·ΔF_j.
+    r <- P_K(g - ΔG γ) with γ = argmin |f - ΔF γ| (normal equations, Cholesky)."""
+    n3 = r.shape[0]
+    slot = (k - 1) % m
+    xr, gp, fp = 2 * m + 2, 2 * m, 2 * m + 1
+    for l in range(n3):
+        g, f = r[l], r[l] - hist[xr, l]
+        if k > 0:
+            hist[slot, l] = g - hist[gp, l]
+            hist[m + slot, l] = f - hist[fp, l]
+        hist[gp, l], hist[fp, l] = g, f
+    p = ti.min(k, m)
+    if p > 0:
+        for j in range(p):                          # the new column of the Gram matrix, and ΔFᵀ f
+            a, b = 0.0, 0.0
+            for l in range(n3):
+                a += hist[m + slot, l] * hist[m + j, l]
+                b += hist[m + j, l] * hist[fp, l]
+            gram[slot, j], gram[j, slot], gram[j, m] = a, a, b
+        # Cholesky of the p×p Gram matrix (regularised: its columns become nearly dependent) in
+        # gram[.., m + 1 ..], then γ into gram[.., 2m + 1].
+        trace = 0.0
+        for j in range(p):
+            trace += gram[j, j]
+        ok = trace > 0.0
+        c = m + 1
+        for j in range(p):
+            d = gram[j, j] + 1e-10 * trace
+            for i in range(j):
+                d -= gram[j, c + i] ** 2
+            if d <= 0.0:
+                ok = False
+            d = ti.sqrt(ti.max(d, 1e-300))
+            gram[j, c + j] = d
+            for i in range(j + 1, p):
+                e = gram[i, j]
+                for t in range(j):
+                    e -= gram[i, c + t] * gram[j, c + t]
+                gram[i, c + j] = e / d
+        if ok:
+            y = 2 * m + 1
+            for i in range(p):                      # forward: L z = ΔFᵀ f
+                e = gram[i, m]
+                for t in range(i):
+                    e -= gram[i, c + t] * gram[t, y]
+                gram[i, y] = e / gram[i, c + i]
+            for i0 in range(p):                     # backward: Lᵀ γ = z
+                i = p - 1 - i0
+                e = gram[i, y]
+                for t in range(i + 1, p):
+                    e -= gram[t, c + i] * gram[t, y]
+                gram[i, y] = e / gram[i, c + i]
+            for i in range(mu.shape[0]):
+                x = _vec(r, i)
+                for j in range(p):
+                    for a in ti.static(range(3)):
+                        x[a] -= gram[j, y] * hist[j, 3 * i + a]
+                x = _project(x, mu[i])
+                for a in ti.static(range(3)):
+                    r[3 * i + a] = x[a]
+
+
+# ----------------------------------------------------------------------------------------------
+# Gauss-Seidel: all sweeps in one launch, serial. The exact residual needs u = W r + q (one more
+# pass over W), so it is computed only when the sweep's running estimate says "converged" (and at
+# the start and the end); between two, u holds each contact's value when it was last solved.
+# ----------------------------------------------------------------------------------------------
+
+def run(layout: int, W, P, scale: float, max_iterations: int, tol_abs: float, stall: int = 0):
+    """Sweeps from P.r (0 sweeps: u and the residual of r alone), in one launch; with `stall`,
+    stopped early when that many sweeps did not halve the residual or, at their rate, would not
+    reach tol_abs within max_iterations. Returns (sweeps, error², stalled)."""
+    _sweeps(layout, W, P, scale, max_iterations, tol_abs ** 2, stall)
+    stats = P.stats.to_numpy()
+    return int(stats[0]), float(stats[1]), bool(stats[2])
+
+
+@ti.kernel
+def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM, scale: float, max_it: ti.i32, tol2: float, stall: ti.i32):
+    """Sweeps until the residual is ≤ tol2 (squared) or max_it sweeps; with stall > 0 also when
+    `stall` sweeps did not halve the residual, or would not reach tol2 within max_it at the rate
+    of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps."""
+    window = (P.hist.shape[0] - 3) // 2 if P.hist.shape[0] > 1 else 0         # (see history_shape)
+    it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
+    phase_err2, stalled = 0.0, 0
+    n = P.mu.shape[0]
+    _refresh(layout, W, P.r, scale)
+    while True:
+        at_phase = stall > 0 and it % stall == 0
+        if it == 0 or est <= tol2 or it >= max_it or at_phase:
+            err2 = _residual(layout, W, P, scale)
+            if err2 <= tol2 or it >= max_it:
+                break
+            if at_phase:
+                # Stalled: these sweeps did not halve the residual, or at their rate the cap
+                # comes before the tolerance (then the sweeps to it are spent for nothing).
+                if it > 0 and (err2 > 0.25 * phase_err2 or
+                               err2 * ti.pow(err2 / phase_err2, (max_it - it) / stall) > tol2):
+                    stalled = 1
+                    break
+                phase_err2 = err2
+        _save(P.r, P.hist, 2 * window + 2, on)
+        est = 0.0
+        for i in range(n):
+            # Contact i solved with the others fixed; est gathers the error the old r_i had (a
+            # cheap running estimate of the residual). A contact that carries nothing and was
+            # apart (u_n > 0) when last seen is passed over until the next residual check, which
+            # sees every contact, or the next REVISIT_EVERY-th sweep (neighbours' pushes can close its
+            # gap meanwhile; without it, problems stopped by the sweep cap penetrated 4-7× deeper):
+            # most of those within the alarm distance never touch.
+            ri = _vec(P.r, i)
+            if ri.norm_sqr() == 0.0 and P.u[3 * i] > 0.0 and it % REVISIT_EVERY != REVISIT_EVERY - 1:
+                continue
+            A = _block(W.Wd, i)
+            ui = _vec(P.q, i) + _wr(layout, W, P.r, i)
+            rnew = _local_solve(A, ui - A @ ri, P.mu[i])
+            for k in ti.static(range(3)):
+                P.r[3 * i + k] = rnew[k]
+                P.u[3 * i + k] = ui[k]
+            est += _contact_error2(ri, ui, P.mu[i])
+            if ti.static(layout == FACTORED):
+                dr = rnew - ri
+                if dr.dot(dr) > 0.0:
+                    _spread(W, n, i, dr, scale)
+        it += 1
+        if on > 0:
+            acc = _accelerate(P.r, P.hist, P.gram, P.mu, window, est, ti.Vector([since, on, last]))
+            since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
+            _refresh(layout, W, P.r, scale)
+    P.stats[0] = it
+    P.stats[1] = err2
+    P.stats[2] = stalled
+
