@@ -44,7 +44,7 @@ from ..mesh import boundary_faces
 from ..options import Options, require, validate
 from ..stats import Stats
 from .compliance import ExactCompliance, WarpedCompliance
-from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows
+from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows, offsets
 from .detection import Contacts, Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver
@@ -417,11 +417,12 @@ class ContactStage:
             c.prepare(j)
             row, local = j.row, j.local
             if c.free:                      # the translation's block per row, at the extra node
-                row, local = np.r_[row, j.perm], np.r_[local, np.full(j.n_active, len(j.touched), np.int32)]
+                row = np.concatenate([row, j.perm])
+                local = np.concatenate([local, np.full(j.n_active, len(j.touched), np.int32)])
             parts.append((row, local, c.factor_size(j)))
         sizes = np.array([d for *_, d in parts])
-        y_offset = np.r_[0, np.cumsum(sizes)]
-        q_offset = np.r_[0, np.cumsum(sizes ** 2)][:-1]
+        y_offset = offsets(sizes)
+        q_offset = offsets(sizes ** 2)[:-1]
         row = np.concatenate([p[0] for p in parts])
         col = np.concatenate([y_offset[k] + 3 * p[1] for k, p in enumerate(parts)])
         segment = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
@@ -438,7 +439,7 @@ class ContactStage:
         for k, b in enumerate(touched):
             self.compliance[b].factor(blocks, Q, diagonal, pos, int(q_offset[k]), start)
             start += len(parts[k][0])
-        ptr = np.r_[0, np.cumsum(np.bincount(row, minlength=n_block_rows))]
+        ptr = offsets(np.bincount(row, minlength=n_block_rows))
         return FactoredDelassus(ptr, col[order], segment[order], blocks[:len(row)].astype(np.float64, copy=False),
                                 Q[:total].astype(np.float64, copy=False), y_offset, q_offset,
                                 diagonal[:n_block_rows].astype(np.float64, copy=False), scale=self.dt)
