@@ -30,6 +30,7 @@ and the contact-force error between the two, in one run on this machine.
 
     python -m bench.contact            # everything (~40 s on 2 cores)
     python -m bench.contact --quick    # liver_press warped only, and the 450-row comparison
+    python -m bench.contact --floor    # the floor scene's step taken apart (stages, launches, copies)
 """
 
 import argparse
@@ -51,25 +52,50 @@ GS_VARIANTS = (("plain", False, False), ("anderson", True, False), ("anderson, i
 
 
 class LaunchCounter:
-    """Counts Taichi kernel launches by kernel name while active (a wrapper on Kernel.__call__)."""
+    """Counts Taichi kernel launches by kernel name while active: launches through Taichi
+    (Kernel.__call__) and those replayed by tissue.launch (whose first, recording launch counts
+    once); and the numpy<->device copies: numpy arrays handed to a kernel (`numpy_arguments`: on
+    the CPU read in place, but set argument by argument, 15-30 µs each; elsewhere a transfer each)
+    and Taichi's from_numpy / to_numpy copy kernels (`copies`, among the launches too)."""
+
+    COPY_KERNELS = ("ext_arr_to_ndarray", "ndarray_to_ext_arr", "ext_arr_to_ndarray_matrix",
+                    "ndarray_matrix_to_ext_arr")
 
     def __enter__(self):
         from taichi.lang import kernel_impl
 
-        self.counts, self._kernel, self.paused = Counter(), kernel_impl.Kernel, False
-        original = self._original = kernel_impl.Kernel.__call__
-        counts = self.counts
+        from tissue import launch
+
+        self.counts, self.numpy_arguments, self.paused = Counter(), 0, False
+        self._patched = [(kernel_impl.Kernel, kernel_impl.Kernel.__call__), (launch.Replayed, launch.Replayed.__call__)]
+        taichi_call, replay_call = (original for _, original in self._patched)
+        counter, inside = self, [False]
 
         def call(kernel, *args, **kwargs):
-            if not self.paused:
-                counts[kernel.func.__name__] += 1
-            return original(kernel, *args, **kwargs)
+            if not counter.paused and not inside[0]:
+                counter.counts[kernel.func.__name__] += 1
+                counter.numpy_arguments += sum(isinstance(a, np.ndarray) for a in args)
+            return taichi_call(kernel, *args, **kwargs)
 
-        kernel_impl.Kernel.__call__ = call
+        def replay(replayed, *args):
+            if not counter.paused:
+                counter.counts[replayed.primal.func.__name__] += 1
+            inside[0] = True
+            try:
+                return replay_call(replayed, *args)
+            finally:
+                inside[0] = False
+
+        kernel_impl.Kernel.__call__, launch.Replayed.__call__ = call, replay
         return self
 
+    @property
+    def copies(self) -> int:
+        return sum(self.counts[k] for k in self.COPY_KERNELS)
+
     def __exit__(self, *exc):
-        self._kernel.__call__ = self._original
+        for owner, original in self._patched:
+            owner.__call__ = original
 
 
 @contextmanager
@@ -212,11 +238,17 @@ def _posed(solve):
     return posed
 
 
-def run_floor(compliance: str, steps: int) -> dict:
+def floor_scene(compliance: str = "warped", step_control: str | None = None):
+    """SOFA's floor scene (REFERENCE-TIMINGS.md): the 596-tet liver dropped on a rigid floor,
+    μ 0.5; `step_control` overrides the solver's (the scene's default: energy control)."""
     from dataclasses import dataclass, field
 
     from tissue.contact import Contact, Obstacle
     from tissue.scene import Scene, Simulation, Solver, SoftBody
+
+    solver = dict(cg_iterations=25, cg_tolerance=1e-9)
+    if step_control is not None:
+        solver["step_control"] = step_control
 
     @dataclass
     class LiverFloor(Scene):
@@ -226,12 +258,99 @@ def run_floor(compliance: str, steps: int) -> dict:
         floor: Obstacle = field(default_factory=lambda: Obstacle(shape="plane", centre=(0.0, 0.0, -0.035)))
         contact: Contact = field(default_factory=lambda: Contact(friction=0.5, distance=2e-3, tolerance=1e-6,
                                                                  max_iterations=1000, compliance=compliance))
-        solver: Solver = field(default_factory=lambda: Solver(cg_iterations=25, cg_tolerance=1e-9))
+        solver: Solver = field(default_factory=lambda: Solver(**solver))
 
-    sim = Simulation(LiverFloor())
+    return Simulation(LiverFloor())
+
+
+def run_floor(compliance: str, steps: int) -> dict:
+    sim = floor_scene(compliance)
     for _ in range(3):
         sim.step()
     return _collect(sim, steps - 3, min_rows=30)
+
+
+def floor_profile(steps: int = 100, settle: int = 40, step_control: str | None = None) -> dict:
+    """One contact step of the floor scene (warped) taken apart, once it rests (after `settle`
+    steps): medians of each stage's wall ms (free motion, the contact stage's five stages, and
+    the Python between them, `glue`: the contact stage less its stages), CPU ms of a whole step,
+    kernel launches per step by kernel (free motion and contact stage apart; replayed ones
+    included), numpy arrays handed to kernels and from_numpy/to_numpy copies per step, and the
+    contact stage's most costly Python functions by own time (cProfile, another `steps` steps:
+    the profiler inflates small calls, so read them as a ranking)."""
+    import cProfile
+    import pstats
+
+    sim = floor_scene("warped", step_control)
+    for _ in range(settle):
+        sim.step()
+    layer = next(s for s in sim.stages if s.name == "contact")
+    counts = {"free_motion": Counter(), "contact": Counter()}
+    numpy_args = {"free_motion": 0, "contact": 0}
+    counter = LaunchCounter()
+    original = layer.step
+
+    def counted(sim_):
+        inner = Counter(counter.counts), counter.numpy_arguments
+        original(sim_)
+        counts["contact"].update(counter.counts - inner[0])
+        numpy_args["contact"] += counter.numpy_arguments - inner[1]
+
+    layer.step = counted
+    cpu = []
+    with counter:
+        for _ in range(steps):
+            start = time.process_time()
+            sim.step()
+            cpu.append(time.process_time() - start)
+    del layer.step
+    total = Counter(counter.counts)
+    counts["free_motion"] = total - counts["contact"]
+    numpy_args["free_motion"] = counter.numpy_arguments - numpy_args["contact"]
+    times = {k: 1e3 * np.asarray(v[settle:]) for k, v in sim.stats.times.items()}
+    ms = {"free_motion": float(np.median(times["free_motion"]))}
+    ms.update({s: float(np.median(times[f"contact: {s}"])) for s in STAGES})
+    ms["glue"] = float(np.median(times["contact"] - sum(times[f"contact: {s}"] for s in STAGES)))
+    ms["contact"] = float(np.median(times["contact"]))
+    profile = cProfile.Profile()
+
+    def profiled(sim_):
+        profile.enable()
+        try:
+            original(sim_)
+        finally:
+            profile.disable()
+
+    layer.step = profiled
+    for _ in range(steps):
+        sim.step()
+    del layer.step
+    entries = pstats.Stats(profile).stats
+    top = sorted(entries.items(), key=lambda kv: -kv[1][2])[:15]
+    functions = [{"function": f"{path.split('site-packages/')[-1].split('/work/')[-1]}:{line}({name})",
+                  "calls_per_step": n / steps, "own_ms_per_step": 1e3 * own / steps}
+                 for (path, line, name), (_, n, own, _cum, _) in top]
+    copies = {k: sum(c[name] for name in LaunchCounter.COPY_KERNELS) for k, c in counts.items()}
+    return {"ms_per_step": ms, "cpu_ms_per_step": 1e3 * float(np.median(cpu)),
+            "rows_median": float(np.median(sim.stats.history["rows"][settle:])),
+            "launches_per_step": {k: sum(c.values()) / steps for k, c in counts.items()},
+            "launches_by_kernel": {k: {n: v / steps for n, v in c.most_common()} for k, c in counts.items()},
+            "numpy_arguments_per_step": {k: v / steps for k, v in numpy_args.items()},
+            "copies_per_step": {k: v / steps for k, v in copies.items()},
+            "python_functions": functions}
+
+
+def print_floor_profile(p: dict, title: str) -> None:
+    ms = p["ms_per_step"]
+    print(f"\n{title}: rows {p['rows_median']:.0f}, CPU {p['cpu_ms_per_step']:.2f} ms/step; wall ms/step "
+          + ", ".join(f"{k} {v:.3f}" for k, v in ms.items()))
+    for part in ("free_motion", "contact"):
+        print(f"  {part}: {p['launches_per_step'][part]:.1f} launches/step ("
+              + ", ".join(f"{k} {v:.1f}" for k, v in p["launches_by_kernel"][part].items())
+              + f"); numpy arguments {p['numpy_arguments_per_step'][part]:.1f}, copies {p['copies_per_step'][part]:.1f}")
+    print("  contact stage, own time by function (cProfile):")
+    for f in p["python_functions"][:10]:
+        print(f"    {f['own_ms_per_step']:7.3f} ms  {f['calls_per_step']:5.1f} calls  {f['function']}")
 
 
 def _collect(sim, steps: int, min_rows: int, skip=()) -> dict:
@@ -380,6 +499,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=80)
     parser.add_argument("--quick", action="store_true", help="liver_press warped and the 450-row comparison only")
+    parser.add_argument("--floor", action="store_true", help="the floor scene's step taken apart only")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -387,6 +507,12 @@ def main(argv=None) -> int:
     info = machine()
     print_machine(info)
     out = {"machine": info, "sofa_floor_ms": SOFA_FLOOR_MS}
+    if args.floor:
+        for name, control in (("energy control (default)", None), ("no step control", "none")):
+            out[name] = floor_profile(step_control=control)
+            print_floor_profile(out[name], f"liver_floor, warped, {name}")
+        write_results("contact-floor", out)
+        return 0
 
     press_results = {"warped": run_press("warped", args.steps, check_every=0 if args.quick else 8)}
     if not args.quick:

@@ -10,8 +10,8 @@ the first launch each ndarray is set once more in the context by its host addres
 for a numpy array), because the CPU launcher leaves the context holding allocation handles it has
 already marked as addresses.
 Arguments that are new objects (a re-allocated argpack after growth) record a new context; a
-numpy argument is recorded by its address, so a caller that reuses one buffer, filled in place,
-replays too.
+numpy argument is recorded by its address and shape, so a caller that reuses one buffer, filled
+in place (or views of it of the same shape), replays too.
 
 The context belongs to Taichi's internals (`taichi.lang.kernel_impl`, pinned to 1.7 by setup.cfg),
 so replays are used on the CPU only, where the tests exercise them; other archs launch normally.
@@ -62,7 +62,9 @@ class Replayed:
     def __call__(self, *args):
         if backend.current().arch != "cpu":
             return self.kernel(*args)
-        key = tuple(("array", id(a)) if isinstance(a, (ArgPack, np.ndarray)) else a for a in args)
+        key = tuple(_key(a) for a in args)
+        if _UNREPLAYABLE in key:
+            return self.kernel(*args)
         hit = self.contexts.get(key)
         if hit is None:
             return self._record(key, args)
@@ -112,6 +114,24 @@ class Replayed:
         runtime_ops.sync()
         values = [_read_return(self.primal, context, t, i) for i, t in enumerate(types)]
         return values[0] if len(values) == 1 else values
+
+
+_UNREPLAYABLE = ("unreplayable",)
+
+
+def _key(arg):
+    """What identifies an argument's recorded launch: an argpack (or ndarray) by identity; a
+    numpy array by where its memory is and its shape, which is all the launch keeps of it (so a
+    new view of the same buffer, e.g. its first n² entries as n × n, replays too; one that is not
+    C-contiguous is copied by Taichi at each launch, so it is never replayed); anything else by
+    value."""
+    if isinstance(arg, np.ndarray):
+        if arg.flags.c_contiguous:
+            return ("numpy", arg.__array_interface__["data"][0], arg.shape, arg.dtype.str)
+        return _UNREPLAYABLE
+    if isinstance(arg, (ArgPack, Ndarray)):
+        return ("array", id(arg))
+    return arg
 
 
 def _flatten(pack: ArgPack, annotation: ArgPackType) -> list[Ndarray]:

@@ -78,7 +78,7 @@ except ImportError:          # the optional extra tissue[cholmod]; scipy's LU st
 FACTORIZATIONS = ("auto", "cholmod", "lu")
 from ..fem.corotational import nodal_rotation
 from ..fem.model import real_numpy
-from ..launch import host_view
+from ..launch import host_view, replayed
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 from .storage import Storage
@@ -93,6 +93,21 @@ def _nodal_rotations(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incide
         out[v] = nodal_rotation(Re, valence, incidence, v, tol)
 
 
+# A launch's arrays, in one flat argpack (tissue.solver.implicit_euler says why flat): the FEM's
+# element rotations and gather index, the nodal rotations R, A₀⁻¹ (C0), the touched nodes' blocks
+# of rows in C0 (rows), the step's scratch (hr, U, ht, Qt; r0 and pushed for the correction), the
+# JDS (jds: JaggedDiagonal.packed; value), λ, the solver's x and v, and the step's scalars in two
+# small arrays, `sizes` (SIZES) and `reals` (REALS): every member is an array kept between steps,
+# so the launch is replayed (tissue.launch) whatever the step's sizes.
+WARP_MEMBERS = ("Re", "valence", "incidence", "R", "C0", "rows", "hr", "U", "ht", "Qt", "jds", "value", "lam",
+                "r0", "pushed", "x", "v", "sizes", "reals")
+WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in WARP_MEMBERS})
+WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset")
+WARP_REALS = ("h", "inverse_mass", "tolerance")
+N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET = range(len(WARP_SIZES))
+H, INVERSE_MASS, TOLERANCE = range(len(WARP_REALS))
+
+
 @ti.func
 def _jds_offsets(n_active, k_max, nnz):
     """Offsets of perm, count, jd_ptr, node, local, touched in JaggedDiagonal.packed."""
@@ -104,100 +119,90 @@ def _jds_offsets(n_active, k_max, nnz):
 
 
 @ti.func
-def _row_translation(jds: ti.template(), value: ti.template(), o_count, o_ptr, i):
+def _row_translation(k: ti.template(), o_count, o_ptr, i):
     """(H T)ᵢ: the sum of block row i's blocks, its (unrotated) response to a uniform translation."""
     G = ti.Matrix.zero(float, 3, 3)
-    for l in range(jds[o_count + i]):
-        e = jds[o_ptr + l] + i
-        for a, b in ti.static(ti.ndrange(3, 3)):
-            G[a, b] += value[e, a, b]
+    for l in range(k.jds[o_count + i]):
+        e = k.jds[o_ptr + l] + i
+        G += k.value[e]
     return G
 
 
 @ti.func
-def _rotations_and_hr(Re: ti.template(), valence: ti.template(), incidence: ti.template(), R: ti.template(),
-                      hr: ti.template(), jds: ti.template(), value: ti.template(), o_node, nnz, tol,
-                      serial: ti.template()):
+def _rotations_and_hr(k: ti.template(), o_node, nnz, serial: ti.template()):
     """The nodal rotations (every node: the correction reads them) and kernel 1, Hr = H R (a 3×3
     block per JDS entry)."""
+    tol = k.reals[TOLERANCE]
     ti.loop_config(serialize=serial)
-    for v in range(R.shape[0]):
-        R[v] = nodal_rotation(Re, valence, incidence, v, tol)
+    for v in range(k.R.shape[0]):
+        k.R[v] = nodal_rotation(k.Re, k.valence, k.incidence, v, tol)
     ti.loop_config(serialize=serial)
     for e in range(nnz):
-        V = ti.Matrix.zero(float, 3, 3)
-        for a, b in ti.static(ti.ndrange(3, 3)):
-            V[a, b] = value[e, a, b]
-        hr[e] = V @ R[jds[o_node + e]]
+        k.hr[e] = k.value[e] @ k.R[k.jds[o_node + e]]
 
 
 @ti.func
-def _translations_and_gather(C0: ti.template(), rows: ti.template(), ht: ti.template(), Qt: ti.template(),
-                             jds: ti.template(), value: ti.template(), o_count, o_ptr, o_touched, n_active, d, ld,
+def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, o_count, o_ptr, o_touched, n_active, d, ld,
                              inverse_mass, serial: ti.template()):
-    """The rows' translations H T, and Q among the touched dofs gathered once (ld × ld, row-major;
-    a free body's factor adds the translation's block): a compact copy stays in cache where
-    scattered reads of the whole Q (3n × 3n, 10 MB for the liver) miss it."""
+    """The rows' translations H T, and Q among the touched dofs gathered once into Qt from q0 (ld ×
+    ld, row-major; a free body's factor adds the translation's block): a compact copy stays in
+    cache where scattered reads of the whole Q (3n × 3n, 10 MB for the liver) miss it."""
     ti.loop_config(serialize=serial)
     for i in range(n_active):
-        ht[i] = _row_translation(jds, value, o_count, o_ptr, i)
+        k.ht[i] = _row_translation(k, o_count, o_ptr, i)
     ti.loop_config(serialize=serial)
     for a, m in ti.ndrange(ld, ld):
         value_am = 0.0
         if a < d and m < d:
-            value_am = C0[3 * rows[a // 3] + a % 3, 3 * jds[o_touched + m // 3] + m % 3]
+            value_am = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
         elif a == m:
             value_am = inverse_mass
-        Qt[a * ld + m] = value_am
+        Qt[q0 + a * ld + m] = value_am
 
 
 # One launch each (parallel loops; on one thread for small bodies on the CPU): _rotate for the
 # correction alone, _assemble to form W, _factor for W's factors.
 
 @ti.kernel
-def _rotate(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
-            R: ti.types.ndarray(), hr: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(),
-            n_active: ti.i32, k_max: ti.i32, nnz: ti.i32, tol: float, serial: ti.template()):
+def _rotate(k: WARP, serial: ti.template()):
     """The nodal rotations and Hr, what the correction needs when W was neither formed nor factored."""
-    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
-    _rotations_and_hr(Re, valence, incidence, R, hr, jds, value, o_node, nnz, tol, serial)
+    n_active, nnz = k.sizes[N_ACTIVE], k.sizes[NNZ]
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
+    _rotations_and_hr(k, o_node, nnz, serial)
 
 
 @ti.kernel
-def _assemble(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
-              R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
-              U: ti.types.ndarray(), ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(),
-              Qt: ti.types.ndarray(), W: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
-              n_touched: ti.i32, h: float, inverse_mass: float, tol: float, serial: ti.template()):
+def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
     """The nodal rotations and Hr; H T and Q among the touched dofs (Qt); U = Q Hrᵀ there; and
     kernel 2: W += h (Hr U + (H T)(H T)ᵀ / (c m))."""
-    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
-    _rotations_and_hr(Re, valence, incidence, R, hr, jds, value, o_node, nnz, tol, serial)
-    d = 3 * n_touched
-    _translations_and_gather(C0, rows, ht, Qt, jds, value, o_count, o_ptr, o_touched, n_active, d, d,
-                             inverse_mass, serial)
+    n_active, nnz = k.sizes[N_ACTIVE], k.sizes[NNZ]
+    h, inverse_mass = k.reals[H], k.reals[INVERSE_MASS]
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
+    _rotations_and_hr(k, o_node, nnz, serial)
+    d = 3 * k.sizes[N_TOUCHED]
+    _translations_and_gather(k, k.Qt, 0, o_count, o_ptr, o_touched, n_active, d, d, inverse_mass, serial)
     # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
     # fastest, so neighbouring threads read neighbouring entries of a row.
     ti.loop_config(serialize=serial)
     for i, m in ti.ndrange(n_active, d):
         s = ti.Vector([0.0, 0.0, 0.0])
-        for l in range(jds[o_count + i]):
-            e = jds[o_ptr + l] + i
-            b = 3 * jds[o_local + e] * d + m
-            s += hr[e] @ ti.Vector([Qt[b], Qt[b + d], Qt[b + 2 * d]])
-        U[i * d + m] = s
+        for l in range(k.jds[o_count + i]):
+            e = k.jds[o_ptr + l] + i
+            b = 3 * k.jds[o_local + e] * d + m
+            s += k.hr[e] @ ti.Vector([k.Qt[b], k.Qt[b + d], k.Qt[b + 2 * d]])
+        k.U[i * d + m] = s
     # Kernel 2: the 3×3 block (i, j) of W is h U(i, j's dofs) Hr(j, ·)ᵀ; upper triangle, mirrored.
     ti.loop_config(serialize=serial)
     for i, j in ti.ndrange(n_active, n_active):
         if j >= i:
             B = ti.Matrix.zero(float, 3, 3)
-            for l in range(jds[o_count + j]):
-                e = jds[o_ptr + l] + j
-                a = i * d + 3 * jds[o_local + e]
-                B += ti.Matrix.cols([U[a], U[a + 1], U[a + 2]]) @ hr[e].transpose()
+            for l in range(k.jds[o_count + j]):
+                e = k.jds[o_ptr + l] + j
+                a = i * d + 3 * k.jds[o_local + e]
+                B += ti.Matrix.cols([k.U[a], k.U[a + 1], k.U[a + 2]]) @ k.hr[e].transpose()
             if inverse_mass != 0.0:
-                B += inverse_mass * ht[i] @ ht[j].transpose()
-            ri, rj = 3 * jds[i], 3 * jds[j]
+                B += inverse_mass * k.ht[i] @ k.ht[j].transpose()
+            ri, rj = 3 * k.jds[i], 3 * k.jds[j]
             for p, q in ti.static(ti.ndrange(3, 3)):
                 W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
             if i != j:
@@ -206,71 +211,68 @@ def _assemble(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti
 
 
 @ti.kernel
-def _factor(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incidence: ti.types.ndarray(),
-            R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
-            ht: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), Qt: ti.types.ndarray(),
-            diagonal: ti.types.ndarray(), P: ti.types.ndarray(), pos: ti.types.ndarray(), n_active: ti.i32,
-            k_max: ti.i32, nnz: ti.i32, n_touched: ti.i32, h: float, inverse_mass: float, tol: float,
-            serial: ti.template()):
-    """The factors of W (tissue.contact.FactoredDelassus): Hr and H T into P at `pos`, Q among the
-    touched dofs into Qt (with the translation's block for a free body), and W's diagonal blocks:
+def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), diagonal: ti.types.ndarray(),
+            pos: ti.types.ndarray(), serial: ti.template()):
+    """The factors of W (tissue.contact.FactoredDelassus): Hr and H T into P at this body's
+    entries of `pos` (from pos_offset), Q among the touched dofs into Q from q_offset (with the
+    translation's block for a free body), and W's diagonal blocks:
     diagonal[block row] += h (Hr Q Hrᵀ + (H T)(H T)ᵀ / (c m))."""
-    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
-    _rotations_and_hr(Re, valence, incidence, R, hr, jds, value, o_node, nnz, tol, serial)
-    d = 3 * n_touched
-    ld = d + (3 if inverse_mass != 0.0 else 0)      # Qt's row length
-    _translations_and_gather(C0, rows, ht, Qt, jds, value, o_count, o_ptr, o_touched, n_active, d, ld,
-                             inverse_mass, serial)
+    n_active, nnz = k.sizes[N_ACTIVE], k.sizes[NNZ]
+    q0, p0 = k.sizes[Q_OFFSET], k.sizes[POS_OFFSET]
+    h, inverse_mass = k.reals[H], k.reals[INVERSE_MASS]
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
+    _rotations_and_hr(k, o_node, nnz, serial)
+    d = 3 * k.sizes[N_TOUCHED]
+    ld = d + (3 if inverse_mass != 0.0 else 0)      # Q's row length
+    _translations_and_gather(k, Q, q0, o_count, o_ptr, o_touched, n_active, d, ld, inverse_mass, serial)
     ti.loop_config(serialize=serial)
     for i in range(n_active):
-        count = jds[o_count + i]
+        count = k.jds[o_count + i]
         B = ti.Matrix.zero(float, 3, 3)
         for l in range(count):
-            e = jds[o_ptr + l] + i
+            e = k.jds[o_ptr + l] + i
             for c in ti.static(ti.ndrange(3, 3)):
-                P[pos[e], c[0], c[1]] = hr[e][c[0], c[1]]
-            a = 3 * jds[o_local + e]
+                P[pos[p0 + e], c[0], c[1]] = k.hr[e][c[0], c[1]]
+            a = 3 * k.jds[o_local + e]
             for l2 in range(count):
-                f = jds[o_ptr + l2] + i
-                b = 3 * jds[o_local + f]
+                f = k.jds[o_ptr + l2] + i
+                b = 3 * k.jds[o_local + f]
                 Qab = ti.Matrix.zero(float, 3, 3)
                 for p, q in ti.static(ti.ndrange(3, 3)):
-                    Qab[p, q] = Qt[(a + p) * ld + b + q]
-                B += hr[e] @ Qab @ hr[f].transpose()
+                    Qab[p, q] = Q[q0 + (a + p) * ld + b + q]
+                B += k.hr[e] @ Qab @ k.hr[f].transpose()
         if inverse_mass != 0.0:
             for c in ti.static(ti.ndrange(3, 3)):
-                P[pos[nnz + i], c[0], c[1]] = ht[i][c[0], c[1]]
-            B += inverse_mass * ht[i] @ ht[i].transpose()
-        row = jds[i]
+                P[pos[p0 + nnz + i], c[0], c[1]] = k.ht[i][c[0], c[1]]
+            B += inverse_mass * k.ht[i] @ k.ht[i].transpose()
+        row = k.jds[i]
         for p, q in ti.static(ti.ndrange(3, 3)):
             diagonal[row, p, q] = diagonal[row, p, q] + h * B[p, q]
 
 
 @ti.kernel
-def _correct(R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarray(), hr: ti.types.ndarray(),
-             r0: ti.types.ndarray(),
-             pushed: ti.types.ndarray(), jds: ti.types.ndarray(), value: ti.types.ndarray(), lam: ti.types.ndarray(),
-             x: ti.types.ndarray(), v: ti.types.ndarray(), n_active: ti.i32, k_max: ti.i32, nnz: ti.i32,
-             n_touched: ti.i32, h: float, inverse_mass: float, serial: ti.template()):
+def _correct(k: WARP, serial: ti.template()):
     """r₀ = (H R)ᵀ λ on the touched dofs and the total impulse p = (H T)ᵀ λ (serial: a fixed
     summation order; p in r₀'s last slot), then per node dx = h (R Q r₀ + p / (c m)) (a gather over
     the touched columns with r₀ ≠ 0, listed in `pushed`), x += dx, v += dx / h."""
-    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k_max, nnz)
-    last = r0.shape[0] - 1
+    n_active, nnz, n_touched = k.sizes[N_ACTIVE], k.sizes[NNZ], k.sizes[N_TOUCHED]
+    h, inverse_mass = k.reals[H], k.reals[INVERSE_MASS]
+    o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
+    last = k.r0.shape[0] - 1
     ti.loop_config(serialize=serial)
     for t in range(n_touched):
-        r0[t] = ti.Vector([0.0, 0.0, 0.0])
+        k.r0[t] = ti.Vector([0.0, 0.0, 0.0])
     ti.loop_config(serialize=True)                  # a fixed summation order, no races
     for i in range(n_active):
-        ri = 3 * jds[i]
-        li = ti.Vector([lam[ri], lam[ri + 1], lam[ri + 2]])
+        ri = 3 * k.jds[i]
+        li = ti.Vector([k.lam[ri], k.lam[ri + 1], k.lam[ri + 2]])
         if i == 0:
-            r0[last] = ti.Vector([0.0, 0.0, 0.0])
-        r0[last] += _row_translation(jds, value, o_count, o_ptr, i).transpose() @ li
-        for l in range(jds[o_count + i]):
-            e = jds[o_ptr + l] + i
-            a = jds[o_local + e]
-            r0[a] = r0[a] + hr[e].transpose() @ li
+            k.r0[last] = ti.Vector([0.0, 0.0, 0.0])
+        k.r0[last] += _row_translation(k, o_count, o_ptr, i).transpose() @ li
+        for l in range(k.jds[o_count + i]):
+            e = k.jds[o_ptr + l] + i
+            a = k.jds[o_local + e]
+            k.r0[a] = k.r0[a] + k.hr[e].transpose() @ li
     # Most rows within the alarm distance carry no impulse (the pressed liver: ~140 of ~155
     # contacts): only the touched nodes pushed read their rows of A₀⁻¹, the costly part (cold in
     # cache: 3 rows of 3n per node).
@@ -278,23 +280,27 @@ def _correct(R: ti.types.ndarray(), C0: ti.types.ndarray(), rows: ti.types.ndarr
     for _ in range(1):
         count = 0
         for t in range(n_touched):
-            if r0[t].norm_sqr() > 0.0:
-                pushed[count] = t
+            if k.r0[t].norm_sqr() > 0.0:
+                k.pushed[count] = t
                 count += 1
-        pushed[pushed.shape[0] - 1] = count
+        k.pushed[k.pushed.shape[0] - 1] = count
     ti.loop_config(serialize=serial)
-    for k in range(x.shape[0]):
+    for n in range(k.x.shape[0]):
         # A₀⁻¹ is symmetric: read its touched rows, where neighbouring nodes are neighbouring entries.
         s = ti.Vector([0.0, 0.0, 0.0])
-        for a in range(pushed[pushed.shape[0] - 1]):
-            t = pushed[a]
-            row = 3 * rows[t]
-            g = r0[t]
+        for a in range(k.pushed[k.pushed.shape[0] - 1]):
+            t = k.pushed[a]
+            row = 3 * k.rows[t]
+            g = k.r0[t]
             for c in ti.static(range(3)):
-                s[c] += C0[row, 3 * k + c] * g[0] + C0[row + 1, 3 * k + c] * g[1] + C0[row + 2, 3 * k + c] * g[2]
-        dx = h * (R[k] @ s + inverse_mass * r0[last])
-        x[k] = x[k] + dx
-        v[k] = v[k] + dx / h
+                s[c] += k.C0[row, 3 * n + c] * g[0] + k.C0[row + 1, 3 * n + c] * g[1] + k.C0[row + 2, 3 * n + c] * g[2]
+        dx = h * (k.R[n] @ s + inverse_mass * k.r0[last])
+        k.x[n] = k.x[n] + dx
+        k.v[n] = k.v[n] + dx / h
+
+
+_rotate_replayed, _assemble_replayed, _factor_replayed, _correct_replayed = (
+    replayed(kernel) for kernel in (_rotate, _assemble, _factor, _correct))
 
 
 @ti.kernel
@@ -323,6 +329,9 @@ class WarpedCompliance:
         self._tol = solver.fem.rotation_tolerance
         self.storage = Storage()                              # this step's scratch: see prepare
         self.jds, self._ready = None, False
+        self._pack_key = None
+        # The step's scalars (see WARP), written in place each step.
+        self._sizes, self._reals = np.zeros(len(WARP_SIZES), np.int32), np.zeros(len(WARP_REALS), self._np)
         self.follow_edits()
 
     def follow_edits(self) -> None:
@@ -386,21 +395,35 @@ class WarpedCompliance:
 
     def prepare(self, jds: JaggedDiagonal) -> None:
         """This step's rows of H (the work is done by `add_to` or `factor`, or by `correct`
-        without them)."""
+        without them), written into the arrays the launches keep."""
         self.jds, self._ready = jds, False
         d, real, storage = 3 * len(jds.touched), self.real, self.storage
-        self.rows = storage.get("rows", len(jds.touched), ti.i32)
         blocks = self._read_source(jds.touched) if self.source is not None else jds.touched
-        if backend.current().arch == "cpu":
-            host_view(self.rows)[:len(blocks)] = blocks
-        else:
-            padded = np.zeros(self.rows.shape[0], np.int32)
-            padded[:len(blocks)] = blocks
-            self.rows.from_numpy(padded)
+        self.rows = storage.put("rows", blocks, ti.i32)
+        self._jds = storage.put("jds", jds.packed, ti.i32)
+        self._value = storage.put("value", jds.value, ti.types.matrix(3, 3, real))
         self.hr = storage.get("hr", jds.nnz, ti.types.matrix(3, 3, real))          # (H R) per block
         self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
         self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
         self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
+        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0
+        self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
+        self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
+
+    def _pack(self, lam=None):
+        """The launches' argpack (WARP), rebuilt only when one of its arrays was re-allocated (λ
+        written first, for the correction)."""
+        storage, fem = self.storage, self.solver.fem
+        lam = storage.get("lam", 1, self.real) if lam is None else storage.put("lam", lam, self.real)
+        valence, incidence = fem.model.gather_index()
+        arrays = dict(Re=fem.R, valence=valence, incidence=incidence, R=self.R, C0=self.C0, rows=self.rows, hr=self.hr,
+                      U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
+                      pushed=self.pushed, x=self.solver.x, v=self.solver.v, sizes=self._scalars[0],
+                      reals=self._scalars[1])
+        key = tuple(id(a) for a in arrays.values())
+        if key != self._pack_key:
+            self._pack_arrays, self._pack_key = WARP(**arrays), key
+        return self._pack_arrays
 
     def _read_source(self, touched: np.ndarray) -> np.ndarray:
         """C0 from the cutting compliance followed, and per touched node its block of rows in C0.
@@ -434,44 +457,34 @@ class WarpedCompliance:
         translation of a free body."""
         return 3 * len(jds.touched) + 3 * self.free
 
-    def _shape(self) -> tuple:
-        """The JDS's sizes, then the step size, the free body's inverse mass and the rotations' tolerance."""
-        jds = self.jds
-        return (jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), self.solver.dt, self.inverse_mass,
-                self._tol)
-
     def add_to(self, W: np.ndarray) -> None:
         """W (n_rows², the backend's float type) += h (H R) A₀⁻¹ (H R)ᵀ."""
-        fem, jds = self.solver.fem, self.jds
-        if jds.n_active:
-            _assemble(fem.R, *fem.model.gather_index(), self.R, self.C0, self.rows, self.hr, self.U, self.ht,
-                      jds.packed, jds.value, self._Qt, W, *self._shape(), self.serial)
+        if self.jds.n_active:
+            _assemble_replayed(self._pack(), W, self.serial)
             self._ready = True
 
-    def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray) -> None:
-        """This body's factors of W (tissue.contact.FactoredDelassus): P[pos[e]] = (H R) block of
-        JDS entry e (and P[pos[nnz + i]] = (H T) of sorted block row i, free bodies), Q its
-        compliance on the factor's dofs (factor_size(jds)² entries, row-major), and W's diagonal
-        blocks += this body's part."""
-        fem, jds = self.solver.fem, self.jds
-        if jds.n_active:
-            _factor(fem.R, *fem.model.gather_index(), self.R, self.C0, self.rows, self.hr, self.ht, jds.packed,
-                    jds.value, Q, diagonal, P, pos, *self._shape(), self.serial)
+    def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray, q_offset: int = 0,
+               pos_offset: int = 0) -> None:
+        """This body's factors of W (tissue.contact.FactoredDelassus): P[pos[pos_offset + e]] = (H R)
+        block of JDS entry e (and P[pos[pos_offset + nnz + i]] = (H T) of sorted block row i, free
+        bodies), its compliance on the factor's dofs in Q from q_offset (factor_size(jds)²
+        entries, row-major), and W's diagonal blocks += this body's part. (The stage hands the
+        same buffers each step, whole: the launch replays.)"""
+        if self.jds.n_active:
+            self._sizes[Q_OFFSET], self._sizes[POS_OFFSET] = q_offset, pos_offset
+            self.storage.put("sizes", self._sizes, ti.i32)
+            _factor_replayed(self._pack(), P, Q, diagonal, pos, self.serial)
             self._ready = True
 
     def correct(self, lam: np.ndarray) -> None:
         """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's arrays."""
-        jds = self.jds
-        if not jds.n_active:
+        if not self.jds.n_active:
             return
+        pack = self._pack(lam)
         if not self._ready:
-            fem = self.solver.fem
-            _rotate(fem.R, *fem.model.gather_index(), self.R, self.hr, jds.packed, jds.value, jds.n_active,
-                    len(jds.jd_ptr) - 1, jds.nnz, self._tol, self.serial)
+            _rotate_replayed(pack, self.serial)
             self._ready = True
-        _correct(self.R, self.C0, self.rows, self.hr, self.r0, self.pushed, jds.packed, jds.value, np.ascontiguousarray(lam, dtype=self._np),
-                 self.solver.x, self.solver.v, jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched),
-                 self.solver.dt, self.inverse_mass, self.serial)
+        _correct_replayed(pack, self.serial)
 
 
 class ExactCompliance:

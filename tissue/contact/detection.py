@@ -246,16 +246,18 @@ def _cell_range(lo, hi, origin, cell, dims):
     return a, b
 
 
+# The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
+# the start of the step) velocities; the obstacles' primitives and bounding balls; body B's
+# positions, surface, vertex normals and triangle grid (soft–soft).
+DETECT_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds", "xb", "faces",
+                  "surface", "vf_offsets", "vf", "normals", "start", "cursor", "ids", "grid_i", "grid_f")
+DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in DETECT_MEMBERS})
+
+
 @ti.kernel
-def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types.ndarray(),
-            prm: ti.types.ndarray(), prm_offsets: ti.types.ndarray(), prm_bounds: ti.types.ndarray(),
-            bounds: ti.types.ndarray(), poses: ti.types.ndarray(), xb: ti.types.ndarray(), faces: ti.types.ndarray(),
-            surface: ti.types.ndarray(), vf_offsets: ti.types.ndarray(), vf: ti.types.ndarray(),
-            normals: ti.types.ndarray(), start: ti.types.ndarray(), cursor: ti.types.ndarray(),
-            ids: ti.types.ndarray(), grid_i: ti.types.ndarray(), grid_f: ti.types.ndarray(), cell0: float,
-            alarm: float, slot: ti.i32, out: ti.types.ndarray(), va: ti.types.ndarray(), h: float,
-            state: ti.types.ndarray(), rigid: ti.template(), soft: ti.template(), copy_state: ti.template(),
-            serial: ti.template()):
+def _detect(det: DETECT, poses: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
+            cell0: float, alarm: float, slot: ti.i32, h: float, rigid: ti.template(), soft: ti.template(),
+            copy_state: ti.template(), serial: ti.template()):
     """The contact candidates of body A's samples, in one launch. out[s, slot] = [gap, normal (3),
     closest point (3), weights on B's triangle (3), triangle id (-1 rigid)]; gap 1e300: none.
 
@@ -263,30 +265,30 @@ def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types
     obstacle). soft (against body B, in `slot`): B's triangle grid (box, counting sort), B's
     vertex normals, then per sample the nearest triangle of its cell within `alarm`.
     copy_state: also state[k] = (x_k, x_k - h v_k) for A's nodes (the constraints need them)."""
-    ns = nodes.shape[0]
+    ns = det.nodes.shape[0]
     if ti.static(copy_state):                       # A's (x, x - h v): the free and start positions
         ti.loop_config(serialize=serial)
-        for k in range(xa.shape[0]):
-            p, u = xa[k], va[k]
+        for k in range(det.xa.shape[0]):
+            p, u = det.xa[k], det.va[k]
             for c in ti.static(range(3)):
                 state[k, c] = p[c]
                 state[k, 3 + c] = p[c] - h * u[c]
     if ti.static(rigid):
         ti.loop_config(serialize=serial)
-        for s, o in ti.ndrange(ns, prm_offsets.shape[0] - 1):
+        for s, o in ti.ndrange(ns, det.prm_offsets.shape[0] - 1):
             R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-            p = R.transpose() @ (_sample(xa, nodes, weights, s) - t)
-            moved = R.transpose() @ (h * _sample(va, nodes, weights, s))     # the free motion (0 without v)
+            p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
+            moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
             reach = alarm + moved.norm()
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounding balls (radius < 0: unbounded, a plane): a primitive whose ball is farther
             # than `reach` cannot be within it, so it is skipped (the obstacle's ball: all of them).
-            if _near(bounds, o, p, reach):
-                for k in range(prm_offsets[o], prm_offsets[o + 1]):
-                    if _near(prm_bounds, k, p, reach):
-                        r = _closest_primitive(prm, k, p)
+            if _near(det.bounds, o, p, reach):
+                for k in range(det.prm_offsets[o], det.prm_offsets[o + 1]):
+                    if _near(det.prm_bounds, k, p, reach):
+                        r = _closest_primitive(det.prm, k, p)
                         if r[0] < best[0]:
                             best = r
             # Within `alarm` at the free position, or at the step's start (the gap less the free
@@ -302,13 +304,13 @@ def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types
                     out[s, o, 7 + i] = 0.0
                 out[s, o, 10] = -1.0
     if ti.static(soft):
-        nf = faces.shape[0]
+        nf = det.faces.shape[0]
         ti.loop_config(serialize=serial)
         for _ in range(1):                          # serial: the grid's box, cell size and dims
             lo = ti.Vector([1e300, 1e300, 1e300])
             hi = -lo
-            for k in range(surface.shape[0]):
-                p = xb[surface[k]]
+            for k in range(det.surface.shape[0]):
+                p = det.xb[det.surface[k]]
                 lo, hi = ti.min(lo, p), ti.max(hi, p)
             lo -= alarm
             hi += alarm
@@ -319,57 +321,57 @@ def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types
                 extent = (hi - lo) / cell
             dims = ti.cast(ti.floor(extent), ti.i32) + 1
             for i in ti.static(range(3)):
-                grid_f[i] = lo[i]
-                grid_i[i] = dims[i]
-            grid_f[3] = cell
-            grid_i[3] = dims[0] * dims[1] * dims[2]
-        origin = ti.Vector([grid_f[0], grid_f[1], grid_f[2]])
-        cell = grid_f[3]
-        dims = ti.Vector([grid_i[0], grid_i[1], grid_i[2]])
+                det.grid_f[i] = lo[i]
+                det.grid_i[i] = dims[i]
+            det.grid_f[3] = cell
+            det.grid_i[3] = dims[0] * dims[1] * dims[2]
+        origin = ti.Vector([det.grid_f[0], det.grid_f[1], det.grid_f[2]])
+        cell = det.grid_f[3]
+        dims = ti.Vector([det.grid_i[0], det.grid_i[1], det.grid_i[2]])
         ti.loop_config(serialize=serial)
-        for c in range(grid_i[3] + 1):
-            start[c] = 0
+        for c in range(det.grid_i[3] + 1):
+            det.start[c] = 0
         ti.loop_config(serialize=serial)
         for f in range(nf):                         # count the triangles of each cell
-            a, b, c = xb[faces[f][0]], xb[faces[f][1]], xb[faces[f][2]]
+            a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
             i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
             for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-                ti.atomic_add(start[(i * dims[1] + j) * dims[2] + k + 1], 1)
+                ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
         ti.loop_config(serialize=serial)
         for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
-            for c in range(grid_i[3]):
-                start[c + 1] += start[c]
-                cursor[c] = start[c]
-            grid_i[4] = start[grid_i[3]]
-            out[ns, slot, 0] = ti.cast(grid_i[4], float)   # the host grows `ids` if it overflowed
+            for c in range(det.grid_i[3]):
+                det.start[c + 1] += det.start[c]
+                det.cursor[c] = det.start[c]
+            det.grid_i[4] = det.start[det.grid_i[3]]
+            out[ns, slot, 0] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
         ti.loop_config(serialize=serial)
         for f in range(nf):                         # fill (order within a cell: any; see below)
-            if grid_i[4] <= ids.shape[0]:
-                a, b, c = xb[faces[f][0]], xb[faces[f][1]], xb[faces[f][2]]
+            if det.grid_i[4] <= det.ids.shape[0]:
+                a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
                 i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
                 for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-                    ids[ti.atomic_add(cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
+                    det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
         ti.loop_config(serialize=serial)
-        for k in range(surface.shape[0]):           # area-weighted vertex normals (a fixed order)
+        for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
             nv = ti.Vector([0.0, 0.0, 0.0])
-            for m in range(vf_offsets[k], vf_offsets[k + 1]):
-                f = faces[vf[m]]
-                nv += (xb[f[1]] - xb[f[0]]).cross(xb[f[2]] - xb[f[0]])
-            normals[surface[k]] = nv / ti.max(nv.norm(), 1e-300)
+            for m in range(det.vf_offsets[k], det.vf_offsets[k + 1]):
+                f = det.faces[det.vf[m]]
+                nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
+            det.normals[det.surface[k]] = nv / ti.max(nv.norm(), 1e-300)
         ti.loop_config(serialize=serial)
         for s in range(ns):                         # narrow phase
             out[s, slot, 0] = 1e300
             out[s, slot, 10] = -1.0
-            p = _sample(xa, nodes, weights, s)
+            p = _sample(det.xa, det.nodes, det.weights, s)
             ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
             best, best_face = 1e300, -1
             best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
-            if grid_i[4] <= ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
+            if det.grid_i[4] <= det.ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
                     and 0 <= ijk[2] < dims[2]:
                 cid = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
-                for m in range(start[cid], start[cid + 1]):
-                    f = ids[m]
-                    a, b, c = xb[faces[f][0]], xb[faces[f][1]], xb[faces[f][2]]
+                for m in range(det.start[cid], det.start[cid + 1]):
+                    f = det.ids[m]
+                    a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
                     w = closest_on_triangle(p, a, b, c)
                     q = w[0] * a + w[1] * b + w[2] * c
                     d = (p - q).norm()
@@ -378,9 +380,9 @@ def _detect(xa: ti.types.ndarray(), nodes: ti.types.ndarray(), weights: ti.types
                     if d < best or (d == best and f < best_face):
                         best, best_face, best_w, best_c = d, f, w, q
             if best_face >= 0 and best <= alarm:
-                f = faces[best_face]
-                a, b, c = xb[f[0]], xb[f[1]], xb[f[2]]
-                vn = best_w[0] * normals[f[0]] + best_w[1] * normals[f[1]] + best_w[2] * normals[f[2]]
+                f = det.faces[best_face]
+                a, b, c = det.xb[f[0]], det.xb[f[1]], det.xb[f[2]]
+                vn = best_w[0] * det.normals[f[0]] + best_w[1] * det.normals[f[1]] + best_w[2] * det.normals[f[2]]
                 d = p - best_c
                 n = (b - a).cross(c - a).normalized()
                 g = 0.0
@@ -488,6 +490,7 @@ class Detector:
         self._moving = [o.motion is not None for o in self.obstacles]
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._fields = {}
+        self._packs = {}                          # per body pair, the launch's argpack (see _pack)
         self._bodies = None
         self.state, self._no_state = None, np.zeros((1, 6))
         self.storage = Storage()                  # per body, the ids of its triangle grid's cells
@@ -571,16 +574,27 @@ class Detector:
                 other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
             ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
             while True:
-                _detect_replayed(x, body.nodes, body.weights, self._prm, self._prm_offsets, self._prm_bounds,
-                                 self._bounds, poses, fields_[b], other.faces, other.surface, other.vf_offsets,
-                                 other.vf, other.normals, other.start, other.cursor, ids, other.grid_i, other.grid_f,
-                                 other.cell + 2 * alarm, alarm, slot, out, x if v is None else v, dt, state, rigid,
-                                 soft, v is not None and k == 0, self.serial)
+                pack = self._pack((a, b), xa=x, nodes=body.nodes, weights=body.weights, va=x if v is None else v,
+                                  prm=self._prm, prm_offsets=self._prm_offsets, prm_bounds=self._prm_bounds,
+                                  bounds=self._bounds, xb=fields_[b], faces=other.faces, surface=other.surface,
+                                  vf_offsets=other.vf_offsets, vf=other.vf, normals=other.normals, start=other.start,
+                                  cursor=other.cursor, ids=ids, grid_i=other.grid_i, grid_f=other.grid_f)
+                _detect_replayed(pack, poses, out, state, other.cell + 2 * alarm, alarm, slot, dt, rigid, soft,
+                                 v is not None and k == 0, self.serial)
                 needed = int(out[-1, slot, 0]) if soft else 0
                 if needed <= ids.shape[0]:
                     break
                 ids = self.storage.get(b, needed, ti.i32)      # grow and redo (rare)
         return out
+
+    def _pack(self, pair, **arrays):
+        """The launch's argpack for the body pair `pair`, rebuilt only when one of its arrays is
+        another object (a grown grid, new bodies): the same pack step after step replays."""
+        key = tuple(id(a) for a in arrays.values())
+        kept = self._packs.get(pair)
+        if kept is None or kept[0] != key:
+            kept = self._packs[pair] = (key, DETECT(**arrays))
+        return kept[1]
 
     def _mesh(self, a, x, o, obstacle, pose, out, alarm, moving) -> None:
         """Hits on a triangle-mesh obstacle (open3d), by the kernel's rule for primitives: within

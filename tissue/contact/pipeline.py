@@ -44,7 +44,7 @@ from ..mesh import boundary_faces
 from ..options import Options, require, validate
 from ..stats import Stats
 from .compliance import ExactCompliance, WarpedCompliance
-from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows
+from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows, offsets
 from .detection import Contacts, Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver
@@ -107,8 +107,8 @@ class ContactResult:
     contacts: Contacts
     rows: ConstraintRows | None = None
     # The Delassus operator (metres per N·s): with warped compliance and no attachments its factors
-    # (FactoredDelassus, shared with nothing else), else an (n_rows, n_rows) array, a view of a
-    # buffer the step after next overwrites (copy it to keep it). `W` is it as an array.
+    # (FactoredDelassus), else an (n_rows, n_rows) array: either way views of buffers the step
+    # after next overwrites (copy them to keep them). `W` is it as an array.
     delassus: np.ndarray | FactoredDelassus | None = None
     impulses: np.ndarray = field(default_factory=lambda: np.zeros(0))  # λ (n_rows,), N·s
     info: ContactInfo | None = None
@@ -193,7 +193,7 @@ class ContactStage:
         for body, listener in zip(self.bodies, self._listeners):
             body.solver.model.subscribe(listener)
         self._pose_cache = {}
-        self._buffers, self._flip = [np.empty(0), np.empty(0)], 0
+        self._buffers, self._flip = [{}, {}], 0
         self._scaled = np.empty(0)
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
         self.compliance = [kind(b.solver) for b in self.bodies] + self.jaws
@@ -290,14 +290,20 @@ class ContactStage:
                 del self._pose_cache[min(self._pose_cache)]     # the earliest time
         return cached
 
+    def _buffer(self, name: str, n: int, dtype, shape=()) -> np.ndarray:
+        """A numpy buffer of at least n rows (of `shape`) kept between steps, whole: the same
+        memory each step, so the launches writing it replay (tissue.launch). Two sets alternate
+        from step to step (`_flip`), so what a step hands out (W, its factors) stays valid until
+        the step after next."""
+        buffers = self._buffers[self._flip]
+        buf = buffers.get(name)
+        if buf is None or len(buf) < n or buf.dtype != dtype:
+            buf = buffers[name] = np.empty((max(n, 2 * len(buf) if buf is not None else n, 1),) + shape, dtype)
+        return buf
+
     def _delassus_buffer(self, n: int, dtype) -> np.ndarray:
-        """A zeroed (n, n) array in a buffer kept between steps (no page faults per step); the
-        previous step's W stays valid until the step after."""
-        self._flip = 1 - self._flip
-        buf = self._buffers[self._flip]
-        if buf.size < n * n or buf.dtype != dtype:
-            buf = self._buffers[self._flip] = np.empty(max(n * n, 2 * buf.size), dtype)
-        W = buf[:n * n].reshape(n, n)
+        """A zeroed (n, n) array in a buffer kept between steps (no page faults per step)."""
+        W = self._buffer("W", n * n, dtype)[:n * n].reshape(n, n)
         W.fill(0.0)
         return W
 
@@ -341,6 +347,7 @@ class ContactStage:
                 jds = {b: JaggedDiagonal(rows, b) for b in touched}
 
         with stats.stage("compliance"):
+            self._flip = 1 - self._flip
             if s.compliance == "warped" and self._factors_pay(rows, touched, jds):
                 W = self._factored(rows, touched, jds)
             elif s.compliance == "warped":
@@ -410,30 +417,32 @@ class ContactStage:
             c.prepare(j)
             row, local = j.row, j.local
             if c.free:                      # the translation's block per row, at the extra node
-                row, local = np.r_[row, j.perm], np.r_[local, np.full(j.n_active, len(j.touched), np.int32)]
+                row = np.concatenate([row, j.perm])
+                local = np.concatenate([local, np.full(j.n_active, len(j.touched), np.int32)])
             parts.append((row, local, c.factor_size(j)))
         sizes = np.array([d for *_, d in parts])
-        y_offset = np.r_[0, np.cumsum(sizes)]
-        q_offset = np.r_[0, np.cumsum(sizes ** 2)][:-1]
+        y_offset = offsets(sizes)
+        q_offset = offsets(sizes ** 2)[:-1]
         row = np.concatenate([p[0] for p in parts])
         col = np.concatenate([y_offset[k] + 3 * p[1] for k, p in enumerate(parts)])
         segment = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
         order = np.argsort(row, kind="stable")
-        pos = np.empty(len(row), np.int32)
-        pos[order] = np.arange(len(row))
         n_block_rows = rows.n_rows // 3
-        blocks = np.empty((len(row), 3, 3), self._np)
-        Q = np.empty(int(np.sum(sizes ** 2)), self._np)
-        diagonal = np.zeros((n_block_rows, 3, 3), self._np)
+        blocks = self._buffer("blocks", len(row), self._np, (3, 3))      # whole buffers: the launches replay
+        pos = self._buffer("pos", len(row), np.int32)
+        pos[order] = np.arange(len(row))
+        total = int(q_offset[-1] + sizes[-1] ** 2)
+        Q = self._buffer("Q", total, self._np)
+        diagonal = self._buffer("diagonal", n_block_rows, self._np, (3, 3))
+        diagonal[:n_block_rows] = 0.0
         start = 0
         for k, b in enumerate(touched):
-            end = start + len(parts[k][0])
-            self.compliance[b].factor(blocks, Q[q_offset[k]:q_offset[k] + sizes[k] ** 2], diagonal, pos[start:end])
-            start = end
-        ptr = np.r_[0, np.cumsum(np.bincount(row, minlength=n_block_rows))]
-        return FactoredDelassus(ptr, col[order], segment[order], blocks.astype(np.float64, copy=False),
-                                Q.astype(np.float64, copy=False), y_offset, q_offset,
-                                diagonal.astype(np.float64, copy=False), scale=self.dt)
+            self.compliance[b].factor(blocks, Q, diagonal, pos, int(q_offset[k]), start)
+            start += len(parts[k][0])
+        ptr = offsets(np.bincount(row, minlength=n_block_rows))
+        return FactoredDelassus(ptr, col[order], segment[order], blocks[:len(row)].astype(np.float64, copy=False),
+                                Q[:total].astype(np.float64, copy=False), y_offset, q_offset,
+                                diagonal[:n_block_rows].astype(np.float64, copy=False), scale=self.dt)
 
     def _solve(self, W, rows: ConstraintRows, contacts: Contacts, mu: np.ndarray):
         """λ (n_rows,) from δ = W λ + δ_free: attachments eliminated (Schur; W an array then), then

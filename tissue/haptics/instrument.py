@@ -157,15 +157,16 @@ class Jaw:
         index = (3 * rows[:, None] + np.arange(3)).ravel()
         W[np.ix_(index, index)] += self.compliance() * (G @ G.T)
 
-    def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray) -> None:
-        """The jaw's factors of W (FactoredDelassus, scale h): its blocks of P, Q = A⁻¹ I₃, and
-        its part of W's diagonal blocks."""
+    def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray, q_offset: int = 0,
+               pos_offset: int = 0) -> None:
+        """The jaw's factors of W (FactoredDelassus, scale h): its blocks of P (at
+        pos[pos_offset:]), Q = A⁻¹ I₃ (from q_offset), and its part of W's diagonal blocks."""
         rows, V = self._blocks()
         if not len(rows):
             return
         inverse = 1.0 / self.coupling.matrix(self.h)
-        P[pos[:len(rows)]] = V
-        Q[:] = (inverse * np.eye(3)).ravel()
+        P[pos[pos_offset:pos_offset + len(rows)]] = V
+        Q[q_offset:q_offset + 9] = (inverse * np.eye(3)).ravel()
         np.add.at(diagonal, rows, self.compliance() * np.einsum("eab,ecb->eac", V, V))
 
     def correct(self, lam: np.ndarray) -> None:
