@@ -472,7 +472,7 @@ def test_exact_compliance_gathers_the_solvers_blocks(backend, execution):
     free = free_dofs(mesh.n_points, solver.fixed_nodes)
     for _ in range(3):
         solver.step()
-        A = exact._gathered(solver.matrix)
+        A = exact._matrix_from_blocks(solver.matrix)
         mass = np.repeat(solver.fem.model.mass, 3)
         fresh = (sp.diags(solver.mass_factor * mass) + solver.stiffness_factor * solver.matrix.to_scipy()).tocsc()
         fresh = fresh[free][:, free]

@@ -67,7 +67,7 @@ def test_stiff_nearly_incompressible_huge_step_stays_bounded_or_is_refused(backe
     assert r["outcome"] in ("bounded", "refused"), r
 
 
-ENERGY_GAIN = pytest.mark.xfail(strict=True, reason="gains energy past the 1 % allowance: README, stability matrix")
+ENERGY_GAIN = pytest.mark.xfail(strict=True, reason="gains energy past the 1 % allowance: docs/stability.md")
 
 
 # A whole step with "invertible" compiles for minutes here (its eigen-solves inline in every

@@ -195,7 +195,7 @@ def host_view(array: Ndarray) -> np.ndarray:
     """A numpy array over a CPU ndarray's own memory (no copy): what numpy writes there, kernels
     read, and the other way round; a vector or matrix ndarray's element is its last axes. CPU
     only (elsewhere the memory is the device's). The view is valid while `array` lives: keep both."""
-    if backend.current().arch != "cpu":
+    if not _on_cpu():                     # Taichi's arch: where the memory really is
         raise RuntimeError("host_view: an ndarray's memory is the host's on the CPU backend only")
     import ctypes
 

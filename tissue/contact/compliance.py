@@ -521,7 +521,7 @@ class ExactCompliance:
         s, fem = self.solver, self.solver.fem
         matrix = getattr(s, "matrix", None)
         if matrix is not None and self.assembly == "solver":
-            A = self._gathered(matrix)
+            A = self._matrix_from_blocks(matrix)
         else:
             v = s.velocities()
             A = linearise(fem.mesh, fem.material, s.positions() - s.dt * v, v, s.dt, rayleigh_mass=s.rayleigh_mass,
@@ -539,7 +539,7 @@ class ExactCompliance:
         else:
             self._solve = spla.splu(A, permc_spec="MMD_AT_PLUS_A").solve
 
-    def _gathered(self, matrix) -> sp.csc_matrix:
+    def _matrix_from_blocks(self, matrix) -> sp.csc_matrix:
         """A = m_f M + s_f K among the free dofs, K the solver's blocks: gathered into a CSC pattern
         made once per topology (the matrix in scipy holding each entry's index into the blocks),
         where converting the blocks and slicing out the free dofs each step cost more than
