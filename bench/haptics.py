@@ -334,7 +334,8 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
 
 
 def markdown(results: dict) -> str:
-    """The haptics table of docs/performance.md: per band and loop kind, the loop's rate and periods, its long periods
+    """The haptics table of docs/performance.md: per band and loop kind, the loop's rate and periods,
+    its long periods
     by cause, its CPU, and the simulation's step against the simulation alone."""
     lines = ["| rows wanted (median in contact) | loop | rate | period p99 / p99.9 / max | ticks; over 1.2 ms: "
              "fraction, woken late, preempted in a tick | loop's CPU, of a core | simulation's step, wall / CPU, "
@@ -364,7 +365,8 @@ def main(argv=None) -> int:
     parser.add_argument("--rounds", type=int, default=1, help="runs of each kind per band, alternated")
     parser.add_argument("--bands", type=int, nargs="*", default=list(BANDS), help="rows wanted: 50 150 450")
     parser.add_argument("--out", help="the results' name under bench/results (default haptics, or haptics_tuning)")
-    parser.add_argument("--report", action="store_true", help="print docs/performance.md's haptics table from bench/results/haptics.json")
+    parser.add_argument("--report", action="store_true",
+                        help="print docs/performance.md's haptics table from bench/results/haptics.json")
     args = parser.parse_args(argv)
     if args.report:
         print(markdown(json.loads((RESULTS / "haptics.json").read_text())))
