@@ -335,8 +335,7 @@ def band(rows_wanted, overrides, runs_of, rounds, figure=None):
 
 def markdown(results: dict) -> str:
     """The haptics table of docs/performance.md: per band and loop kind, the loop's rate and periods,
-    its long periods
-    by cause, its CPU, and the simulation's step against the simulation alone."""
+    its long periods by cause, its CPU, and the simulation's step against the simulation alone."""
     lines = ["| rows wanted (median in contact) | loop | rate | period p99 / p99.9 / max | ticks; over 1.2 ms: "
              "fraction, woken late, preempted in a tick | loop's CPU, of a core | simulation's step, wall / CPU, "
              "against alone (pinned alike) | grasp took (clock) | load |",
