@@ -113,11 +113,20 @@ def factorization(kind: str):
         compliance._cholmod = original
 
 
+def simulation_class():
+    """`tissue.simulation.Simulation`; `bench.contact_versus` also runs this file in checkouts from
+    before it moved out of `tissue.scene`."""
+    try:
+        from tissue.simulation import Simulation
+    except ModuleNotFoundError:
+        from tissue.scene import Simulation
+    return Simulation
+
+
 def press(compliance: str, overrides=()):
     from scenes.liver_press import LiverPress
-    from tissue.scene import Simulation
 
-    return Simulation(LiverPress().with_overrides([f"contact.compliance={compliance}", *overrides]))
+    return simulation_class()(LiverPress().with_overrides([f"contact.compliance={compliance}", *overrides]))
 
 
 def contact_stage(sim):
@@ -244,7 +253,9 @@ def floor_scene(compliance: str = "warped", step_control: str | None = None):
     from dataclasses import dataclass, field
 
     from tissue.contact import Contact, Obstacle
-    from tissue.scene import Scene, Simulation, Solver, SoftBody
+    from tissue.scene import Scene, Solver, SoftBody
+
+    Simulation = simulation_class()
 
     solver = dict(cg_iterations=25, cg_tolerance=1e-9)
     if step_control is not None:

@@ -55,7 +55,7 @@ import scipy.linalg
 from bench.common import alternate_with_commit, machine, print_machine, write_results  # noqa: E402
 from scenes.liver_cut import LiverCut  # noqa: E402
 from tissue import backend  # noqa: E402
-from tissue.scene import held_nodes  # noqa: E402
+from tissue.body import held_nodes  # noqa: E402
 
 FOLD_RANK = 240
 STEP_LENGTH = 0.002          # m of blade travel per step

@@ -86,7 +86,7 @@ def tuning_kinds():
 
 def build(overrides):
     from scenes.liver_grasp import LiverGrasp
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     sim = Simulation(LiverGrasp().with_overrides(list(overrides)), arch="cpu", precision="f64")
     sim.stages = [s for s in sim.stages if s.name != "haptics"]      # the loop's process does it here

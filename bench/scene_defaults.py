@@ -42,7 +42,7 @@ def _solver(name: str, overrides: list[str]):
 def run_once(name: str, overrides: list[str]) -> dict:
     import scenes
     from tissue.options import validate
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     scene = validate(scenes.load(name)().with_overrides(overrides))
     sim = Simulation(scene, arch="cpu")

@@ -29,7 +29,7 @@ SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_contro
 def build(name: str, overrides: list[str]):
     import scenes
     from tissue.options import validate
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     return Simulation(validate(scenes.load(name)().with_overrides(overrides)), arch="cpu")
 

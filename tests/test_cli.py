@@ -58,7 +58,7 @@ def test_debug_shows_the_traceback(capsys, tmp_path):
 
 def test_runtime_failure_exits_1(capsys, tmp_path, monkeypatch, backend):
     from tissue.errors import TissueError
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     def diverge(self):
         raise TissueError("beam: the simulation diverged")

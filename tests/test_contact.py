@@ -1112,7 +1112,7 @@ def test_incline_scene_slides_at_the_coulomb_rate(backend):
     block's centre of mass accelerates down the 25° slope at g (sin θ - μ cos θ) = 0.5895 m/s²
     (measured 0.5899, "polar" rotations, warped compliance)."""
     from scenes.incline import ANGLE, Incline
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     sim = Simulation(Incline(duration=0.6))
     assert [s.name for s in sim.stages] == ["free_motion", "contact"]
@@ -1137,7 +1137,8 @@ def test_scene_contact_options_are_validated(backend):
 
     from tissue.contact import Contact, Obstacle
     from tissue.options import validate
-    from tissue.scene import Scene, Simulation, SoftBody
+    from tissue.scene import Scene, SoftBody
+    from tissue.simulation import Simulation
 
     with pytest.raises(TissueError, match="segments"):
         validate(Obstacle(shape="capsules"))
@@ -1167,7 +1168,8 @@ def test_obstacles_are_drawn_where_they_are(backend):
     from dataclasses import dataclass, field
 
     from tissue.contact import Contact, Obstacle
-    from tissue.scene import Drawable, Scene, Simulation, SoftBody
+    from tissue.scene import Scene, SoftBody
+    from tissue.simulation import Drawable, Simulation
 
     @dataclass
     class Press(Scene):

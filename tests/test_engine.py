@@ -277,7 +277,7 @@ def test_live_simulation_parameters_step_as_a_fresh_simulation(backend):
     step equals that of a Simulation built with those settings from the same state (1e-12), the
     clock advances by the new dt, nothing compiles; with contact, dt is refused by name."""
     import scenes
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     scene = scenes.load("beam")().with_overrides(["beam.cells=6,1,1"])
     live = Simulation(scene)

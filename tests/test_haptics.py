@@ -308,7 +308,7 @@ def test_grasp_force_is_continuous_across_steps(backend):
     at a step's first tick, 3 two or three ticks in, 12 at the cap (not converged in 8 re-solves).
     35 s here under load (5 jobs on 2 cores), compilation included."""
     from scenes.liver_grasp import LiverGrasp
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     sim = Simulation(LiverGrasp().with_overrides(["liver.tets=400", "stomach.tets=400", "duration=2.4"]),
                      arch="cpu", precision="f64")
@@ -367,7 +367,7 @@ def test_trajectory_interpolates_and_round_trips_a_file(tmp_path):
 
 def test_quaternions_round_trip():
     from tissue.haptics.device import matrix_to_quaternion, quaternion_to_matrix
-    from tissue.scene import rotation_matrix
+    from tissue.body import rotation_matrix
 
     for angles in ((0, 0, 0), (30, -40, 170), (180, 0, 0), (0, 180, 90)):
         R = rotation_matrix(angles)

@@ -12,8 +12,9 @@ from tissue.mesh import beam, box, write_vtu
 from tissue.mesh.embedding import EmbeddedSurface
 from tissue.options import apply_overrides, flatten, validate
 from tissue.output import nice_ceiling
-from tissue.scene import (STAGES, Fixed, Render, Scene, Simulation, Solver, SoftBody, add_stage,
-                          build_mesh, held_nodes, rotation_matrix)
+from tissue.body import build_mesh, held_nodes, rotation_matrix
+from tissue.scene import Fixed, Render, Scene, Solver, SoftBody
+from tissue.simulation import STAGES, Simulation, add_stage
 
 
 @dataclass
@@ -208,15 +209,15 @@ def test_mesh_generation_and_kernel_compilation_are_reported_on_their_own(backen
 
     import taichi as ti
 
-    from tissue import scene as scene_module
+    from tissue import body as body_module
 
-    make_mesh = scene_module._make_mesh
+    make_mesh = body_module._make_mesh
 
     def slow_mesh(body, name):
         time.sleep(0.05)
         return make_mesh(body, name)
 
-    monkeypatch.setattr(scene_module, "_make_mesh", slow_mesh)
+    monkeypatch.setattr(body_module, "_make_mesh", slow_mesh)
     sim = Simulation(SmallBeam())
     assert sim.mesh_seconds >= 0.05
 

@@ -111,7 +111,7 @@ def cmd_run(args) -> int:
 
     from . import compilation
     from .output import RunOutput
-    from .scene import Simulation
+    from .simulation import Simulation
 
     started, compiled_at_start = time.perf_counter(), compilation.snapshot()
     _init_backend(args)

@@ -10,7 +10,7 @@
 Only these names are written: nothing else in the folder is touched or deleted. States are recorded
 during the run (positions, and stresses when needed) and rendered at the end, so the colour range
 and the camera frame cover the whole motion. pyvista is imported only when rendering. Rigid things
-the stages declare (`drawables()`, see `tissue.scene.Drawable`: the contact layer's obstacles)
+the stages declare (`drawables()`, see `tissue.simulation.Drawable`: the contact layer's obstacles)
 are drawn in every image and follow their prescribed motion; a stage's `write_outputs(directory)`
 adds its own files (the haptics stage's forces.csv, and forces.png with png output).
 """
@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import TissueError
 from .options import flatten
-from .scene import Simulation
+from .simulation import Simulation
 
 LENGTH_UNITS = ((1.0, "m", 1.0), (1e-3, "mm", 1e3))      # (threshold, name, factor), largest first
 STRESS_UNITS = ((1e6, "MPa", 1e-6), (1e3, "kPa", 1e-3), (0.0, "Pa", 1.0))
@@ -84,7 +84,7 @@ class RunOutput:
         self.wanted = wanted | {0, self.steps}
         self.need_stress = "vtu" in self.outputs or (self.rendering and settings.scalars == "von_mises")
         self.frames: list[Frame] = []
-        # Rigid things the stages want drawn (tissue.scene.Drawable; e.g. the contact obstacles).
+        # Rigid things the stages want drawn (tissue.simulation.Drawable; e.g. the contact obstacles).
         self.drawables = [d for stage in sim.stages for d in (getattr(stage, "drawables", None) or list)()]
         self._surfaces = None
         self.seconds = {"record": 0.0, "render": 0.0}

@@ -24,7 +24,8 @@ import numpy as np
 
 from ..errors import TissueError
 from ..options import Options, require
-from ..scene import Drawable, add_stage, rotation_matrix
+from ..body import rotation_matrix
+from ..simulation import Drawable, add_stage
 from .obstacles import Box, Capsule, Plane, RigidObstacle, Sphere, TriangleMesh, plane_axes, shape_surface
 from .pipeline import Contact, ContactBody, ContactStage
 
@@ -125,7 +126,7 @@ class ContactLayer:
         return {k: v[-1] for k, v in stats.times.items() if v}, dict(stats.counters)
 
     def drawables(self) -> list[Drawable]:
-        """The obstacles, for the run's images (see tissue.scene.Drawable)."""
+        """The obstacles, for the run's images (see tissue.simulation.Drawable)."""
         out = []
         for name, obstacle in self.obstacles.items():
             planes = any(isinstance(s, Plane) for s in obstacle.shapes)

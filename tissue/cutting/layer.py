@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import TissueError
 from ..options import Options, require
-from ..scene import Drawable, add_stage
+from ..simulation import Drawable, add_stage
 from .cutter import Cutter
 from .surface import CutPath
 

@@ -26,7 +26,8 @@ import numpy as np
 from ..contact.layer import obstacle_surface     # (also registers the contact stage, which this one follows)
 from ..errors import TissueError
 from ..options import Options, require
-from ..scene import Drawable, add_stage, rotation_matrix
+from ..body import rotation_matrix
+from ..simulation import Drawable, add_stage
 from .device import Trajectory
 from .instrument import Coupling, Instrument, grasper, probe
 from .continuity import ContinuousForce
