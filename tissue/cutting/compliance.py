@@ -50,35 +50,40 @@ RANK_ROOM = 256      # factor columns beyond fold_rank, so that an update rarely
 RANK_TOLERANCE = 1e-13   # eigenvalues of a correction below this fraction of its largest: rounding
 
 
+# What the kernels read: C, its factors T, U and the mask of free dofs (C − T Uᵀ on the free dofs),
+# bundled once per allocation.
+LOW_RANK = ti.types.argpack(C=ti.types.ndarray(), T=ti.types.ndarray(), U=ti.types.ndarray(),
+                            free=ti.types.ndarray())
+
+
 @ti.func
-def _entry(C: ti.template(), T: ti.template(), U: ti.template(), rank, free: ti.template(), i, j):
+def _entry(c: ti.template(), rank, i, j):
     """Entry (i, j) of C − T Uᵀ, zero unless both dofs are free."""
     value = 0.0
-    if free[i] != 0 and free[j] != 0:
-        value = C[i, j]
+    if c.free[i] != 0 and c.free[j] != 0:
+        value = c.C[i, j]
         for r in range(rank):
-            value -= T[i, r] * U[j, r]
+            value -= c.T[i, r] * c.U[j, r]
     return value
 
 
 @ti.kernel
-def _gather(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), rank: ti.i32,
-            free: ti.types.ndarray(), cols: ti.types.ndarray(), k: ti.i32, n: ti.i32,
+def _gather(c: LOW_RANK, rank: ti.i32, cols: ti.types.ndarray(), k: ti.i32, n: ti.i32,
             out: ti.types.ndarray(), block: ti.types.ndarray(), kb: ti.i32):
     """out[a] = row cols[a] of the current C − T Uᵀ (C symmetric: also its column), zero where a
     dof is not free; block = out at the columns cols (Gᵀ C G, for the host), if kb = k."""
     for a, j in ti.ndrange(k, n):
-        out[a, j] = _entry(C, T, U, rank, free, j, cols[a])
+        out[a, j] = _entry(c, rank, j, cols[a])
     for a, b in ti.ndrange(kb, kb):
         block[a, b] = out[a, cols[b]]
 
 
 @ti.kernel
-def _factor(rows: ti.types.ndarray(), L: ti.types.ndarray(), X: ti.types.ndarray(),
-            units: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), r0: ti.i32,
-            k: ti.i32, w: ti.i32, n: ti.i32, identity: ti.i32):
-    """A factor pair in columns r0 … r0 + w: U = (C G) L (L = I when `identity`), less 1 at
-    (units[b], b) where units[b] ≥ 0; then T = U X."""
+def _factor(c: LOW_RANK, rows: ti.types.ndarray(), L: ti.types.ndarray(), X: ti.types.ndarray(),
+            units: ti.types.ndarray(), r0: ti.i32, k: ti.i32, n: ti.i32, identity: ti.i32):
+    """A factor pair in columns r0 … r0 + w (w = X's size): U = (C G) L (L = I when `identity`),
+    less 1 at (units[b], b) where units[b] ≥ 0; then T = U X."""
+    w = X.shape[0]
     for j, b in ti.ndrange(n, w):
         value = 0.0
         if identity:
@@ -88,24 +93,23 @@ def _factor(rows: ti.types.ndarray(), L: ti.types.ndarray(), X: ti.types.ndarray
                 value += rows[a, j] * L[a, b]
         if units[b] == j:
             value -= 1.0
-        U[j, r0 + b] = value
+        c.U[j, r0 + b] = value
     for j, b in ti.ndrange(n, w):
         value = 0.0
-        for c in range(w):
-            value += U[j, r0 + c] * X[c, b]
-        T[j, r0 + b] = value
+        for d in range(w):
+            value += c.U[j, r0 + d] * X[d, b]
+        c.T[j, r0 + b] = value
 
 
 @ti.kernel
-def _fold(C: ti.types.ndarray(), T: ti.types.ndarray(), U: ti.types.ndarray(), rank: ti.i32,
-          free: ti.types.ndarray(), n: ti.i32):
+def _fold(c: LOW_RANK, rank: ti.i32, n: ti.i32):
     """C ← C − T Uᵀ, zero outside the free dofs; the upper triangle mirrored, so C stays exactly
     symmetric (T Uᵀ is, up to rounding)."""
     for i in range(n):                  # a thread per row: the triangle's j ≥ i, no index division
         for j in range(i, n):
-            value = _entry(C, T, U, rank, free, i, j)
-            C[i, j] = value
-            C[j, i] = value
+            value = _entry(c, rank, i, j)
+            c.C[i, j] = value
+            c.C[j, i] = value
 
 
 # ---- the same three operations with numpy's BLAS on the ndarrays' own memory (CPU) -----------------
@@ -270,6 +274,7 @@ class CuttingCompliance:
         self.T = ti.ndarray(ti.f64, (self.capacity, rank))
         self.U = ti.ndarray(ti.f64, (self.capacity, rank))
         self._T, self._U = (host_view(self.T), host_view(self.U)) if self.blas else (None, None)
+        self._pack = LOW_RANK(C=self.C, T=self.T, U=self.U, free=self.free)
 
     def _grow(self, dofs: int) -> None:
         """Room for the model's grown node capacity: the folded C, padded with zeros."""
@@ -415,8 +420,7 @@ class CuttingCompliance:
             return
         cols = np.zeros(max(k, 1), dtype=np.int32)     # never empty: Taichi takes no empty array
         cols[:k] = dofs
-        _gather(self.C, self.T, self.U, self.rank, self.free, cols, k, self.n_dofs, out, self._block,
-                k if block else 0)
+        _gather(self._pack, self.rank, cols, k, self.n_dofs, out, self._block, k if block else 0)
 
     def _add_factor(self, X: np.ndarray, L: np.ndarray | None = None, units: np.ndarray | None = None) -> None:
         """Append U = (the gathered columns) L − I[:, units], T = U X to the factors."""
@@ -433,8 +437,8 @@ class CuttingCompliance:
         left = np.zeros((max(k, 1), w))
         if L is not None:
             left[:k] = L
-        _factor(self._rows, left, np.ascontiguousarray(X),
-                units, self.T, self.U, self.rank, k, w, self.n_dofs, int(L is None))
+        _factor(self._pack, self._rows, left, np.ascontiguousarray(X), units, self.rank, k, self.n_dofs,
+                int(L is None))
         self.rank += w
 
     def fold(self) -> None:
@@ -444,7 +448,7 @@ class CuttingCompliance:
             if self.blas:
                 _host_fold(self._C, self._T, self._U, self.rank, self._free, n)
             else:
-                _fold(self.C, self.T, self.U, self.rank, self.free, n)
+                _fold(self._pack, self.rank, n)
             self.rank = 0
             self.folds += 1
 
