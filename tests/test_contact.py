@@ -374,18 +374,21 @@ def _both_W(cantilever, contacts):
     return Ww, We, rows, warped, exact
 
 
-@pytest.mark.parametrize("factorization", ["cholmod", "lu"])
-def test_exact_compliance_equals_the_dense_inverse(cantilever, factorization):
+@pytest.mark.parametrize("factorization, simplicial_dofs", [("cholmod", 2500), ("cholmod", 0), ("lu", 2500)])
+def test_exact_compliance_equals_the_dense_inverse(cantilever, factorization, simplicial_dofs, monkeypatch):
     """W = h H A⁻¹ Hᵀ and the correction h A⁻¹ Hᵀ λ by the sparse factorisation (CHOLMOD's
-    Cholesky or scipy's LU), against numpy's dense inverse of the same matrix, at two deformed,
+    simplicial LDLᵀ, its supernodal LLᵀ (forced by SIMPLICIAL_DOFS 0) or scipy's LU), against
+    numpy's dense inverse of the same matrix, at two deformed,
     moving states in turn (A then holds rotated stiffness blocks, not the rest matrix; the second
     factorisation reuses the first's analysis)."""
     if factorization == "cholmod":
         pytest.importorskip("sksparse.cholmod")
+    from tissue.contact import compliance
     from tissue.contact.compliance import ExactCompliance
     from tissue.contact.constraints import build_rows
     from tissue.solver.reference import free_dofs, linearise
 
+    monkeypatch.setattr(compliance, "SIMPLICIAL_DOFS", simplicial_dofs)
     solver = cantilever[0]
     x0, v0 = solver.positions(), solver.velocities()
     rng = np.random.default_rng(4)

@@ -51,11 +51,15 @@ every loop on one thread: the thread pool's dispatch costs more than it saves on
 Exact. W = h H A⁻¹ Hᵀ with A the matrix of this step's free motion (assembled where it linearised,
 at x_prev = x_free - h v_free: the solver's own stiffness blocks, or the numpy reference),
 factorised once per step, as SOFA's sparse LDLᵀ does: A is symmetric positive definite, so a
-sparse Cholesky factorisation with a fill-reducing order (CHOLMOD, through scikit-sparse: its
-supernodal LLᵀ, AMD or METIS, whichever fills less; the analysis once per sparsity pattern, the
-numbers each step), then one call solves A Z = S for every column at once: S the unit vectors of
-the dofs the rows touch (fewer than the rows: a contact's three rows share their nodes), so that
-W = h (H Z) G with Hᵀ = S G. The correction reads the same Z.
+sparse Cholesky factorisation with a fill-reducing order (CHOLMOD, through scikit-sparse, AMD or
+METIS, whichever fills less; the analysis once per sparsity pattern, the numbers each step):
+simplicial LDLᵀ for bodies up to SIMPLICIAL_DOFS free dofs, supernodal LLᵀ above (at the scenes'
+sizes the simplicial factorisation and its triangular solves take about half the supernodal's
+time; `bench/contact.py` times the exact stage). W needs only half a solve: with P A Pᵀ = L D Lᵀ,
+H A⁻¹ Hᵀ = Yᵀ Y for Y = D^-½ L⁻¹ P Hᵀ, one forward substitution for all the columns at once; and
+for fewer columns, Hᵀ = S G with S the unit vectors of the dofs the rows touch (when a contact's
+three rows share fewer dofs than rows), W = h Gᵀ (Yᵀ Y) G, Y from S. The correction is one full
+solve, A⁻¹ (Hᵀ λ).
 Without scikit-sparse (an optional extra: Debian's libsuitesparse-dev, then pip install
 tissue[cholmod]) scipy's SuperLU with the MMD order of Aᵀ + A stands in (`factorization="lu"`,
 2-3× slower on the scenes' bodies; bench/contact.py measures both). This is the reference for the
@@ -63,6 +67,7 @@ warping error and the paper's "direct inversion" baseline.
 """
 
 import numpy as np
+import scipy.linalg.blas
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import taichi as ti
@@ -76,6 +81,7 @@ except ImportError:          # the optional extra tissue[cholmod]; scipy's LU st
     _cholmod = None
 
 FACTORIZATIONS = ("auto", "cholmod", "lu")
+SIMPLICIAL_DOFS = 2500      # free dofs up to which CHOLMOD factorises simplicially (see above)
 from ..fem.corotational import nodal_rotation
 from ..fem.model import real_numpy
 from ..launch import host_view, replayed
@@ -528,12 +534,13 @@ class ExactCompliance:
                           rayleigh_stiffness=s.rayleigh_stiffness, rotation=fem.rotation).A
             A = A.tocsc()[self.free][:, self.free]
         if self.factorization == "cholmod":
-            # A = Pᵀ L Lᵀ P: the fill-reducing order P and L's structure (CHOLMOD's analysis) once
-            # per sparsity pattern, which a body keeps until its topology is edited; then only
-            # the numbers each step, as SOFA's LDLᵀ does.
+            # The fill-reducing order P and L's structure (CHOLMOD's analysis) once per sparsity
+            # pattern, which a body keeps until its topology is edited; then only the numbers.
             pattern = (A.indptr, A.indices)
             if self._pattern is None or not all(np.array_equal(a, b) for a, b in zip(pattern, self._pattern)):
-                self._symbolic, self._pattern = _cholmod(A), (A.indptr.copy(), A.indices.copy())
+                self._ldlt = A.shape[0] <= SIMPLICIAL_DOFS       # CHOLMOD's simplicial factor is L D Lᵀ
+                mode = "simplicial" if self._ldlt else "supernodal"
+                self._symbolic, self._pattern = _cholmod(A, mode=mode), (A.indptr.copy(), A.indices.copy())
             self._symbolic.cholesky_inplace(A)
             self._solve = self._symbolic
         else:
@@ -557,31 +564,46 @@ class ExactCompliance:
         return sp.csc_matrix((data, self._csc.indices, self._csc.indptr), shape=self._csc.shape)
 
     def prepare(self, rows: ConstraintRows, body: int) -> None:
-        """Z = A⁻¹ S in one solve, for the fewer columns of Hᵀ = S G: S the unit vectors of the dofs
-        the active rows touch (G = H among them, transposed; a contact's three rows share their
-        nodes) or S = Hᵀ itself (G = I, when contacts on triangles touch more dofs than rows)."""
+        """B = Sᵀ A⁻¹ S for the fewer columns of Hᵀ = S G: S the unit vectors of the dofs the
+        active rows touch (G = H among them, transposed, sparse; a contact's three rows share
+        their nodes) or S = Hᵀ itself (G = I, None; when contacts on triangles touch more dofs
+        than rows)."""
         H = rows.body_matrix(body, self.solver.fem.n_nodes)[:, self.free]
         self.active = np.flatnonzero(H.getnnz(axis=1))
-        H = H[self.active]
+        self.H = H = H[self.active].tocsr()
         touched = np.flatnonzero(H.getnnz(axis=0))
         if len(touched) < len(self.active):
             S = np.zeros((len(self.free), len(touched)))
             S[touched, np.arange(len(touched))] = 1.0
-            self.G = H[:, touched].T.toarray()
+            self.G = H[:, touched].T.tocsr()
         else:
-            S, self.G = H.T.toarray(), np.eye(len(self.active))
-        self.Z = self._solve(S) if len(self.active) else np.zeros((len(self.free), 0))
-        self.HZ = H @ self.Z
+            S, self.G = H.T.toarray(), None
+        self.B = self._inverse_between(S) if len(self.active) else np.zeros((0, 0))
+
+    def _inverse_between(self, S: np.ndarray) -> np.ndarray:
+        """Sᵀ A⁻¹ S: from CHOLMOD's factor as Yᵀ Y, Y = D^-½ L⁻¹ P S (a forward substitution; D = I
+        for the supernodal LLᵀ); from the LU by a full solve. (The products avoid a threaded dense
+        GEMM: at these sizes OpenBLAS's threads cost more than the product, many times so while
+        other work shares the cores.)"""
+        if self.factorization != "cholmod":
+            return sp.csr_matrix(S.T) @ self._solve(S)
+        factor = self._symbolic
+        Y = factor.solve_L(factor.apply_P(S), use_LDLt_decomposition=self._ldlt)
+        if self._ldlt:
+            Y /= np.sqrt(factor.D())[:, None]
+        upper = scipy.linalg.blas.dsyrk(1.0, Y, trans=1)
+        return upper + np.triu(upper, 1).T
 
     def add_to(self, W: np.ndarray) -> None:
-        """W (numpy, n_rows²) += h H A⁻¹ Hᵀ = h (H Z) G."""
+        """W (numpy, n_rows²) += h H A⁻¹ Hᵀ = h Gᵀ B G (B itself where G = I)."""
         if len(self.active):
-            W[np.ix_(self.active, self.active)] += self.solver.dt * (self.HZ @ self.G)
+            B = self.B if self.G is None else self.G.T @ (self.G.T @ self.B).T     # B symmetric
+            W[np.ix_(self.active, self.active)] += self.solver.dt * B
 
     def correct(self, lam: np.ndarray) -> None:
         if not len(self.active):
             return
         s = self.solver
         dx = np.zeros(3 * s.fem.n_nodes)
-        dx[self.free] = s.dt * (self.Z @ (self.G @ lam[self.active]))
+        dx[self.free] = s.dt * self._solve(self.H.T @ lam[self.active])
         _displace(s.x, s.v, dx.reshape(-1, 3).astype(real_numpy()), s.dt)
