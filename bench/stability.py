@@ -218,6 +218,7 @@ def solver_for(cell: dict, mesh, material):
     solver.set_parameters(dt=cell["dt"], cg=cg)     # read at every launch: nothing recompiles
     fem = solver.fem
     fem.model.set_material(material)     # a runtime change: nothing recompiles
+    solver.check_regime()                # the refusal a new solver gives at its first step, now
     solver.stats = Stats()
     solver._warned_inversion = False     # the solver warns once per life: here, once per cell
     return solver

@@ -33,6 +33,7 @@ from ..fem import CorotationalFEM, assembled, corotational
 from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL, real_numpy
+from ..fem.regime import check_regime
 from ..launch import host_view, replayed
 from ..stats import Stats
 from . import multigrid
@@ -191,6 +192,8 @@ class ImplicitEuler:
         self._pack_key = None
         self.multigrid = None
         self.parameters = parameters
+        self._regime = None
+        self.check_regime()
         self._resize()
         if fixed is not None:
             self.model.set_held(fixed)
@@ -238,6 +241,8 @@ class ImplicitEuler:
             (self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
         self.parameters = new
         self._upload_parameters()
+        if new.gravity != self._regime[1]:
+            self.check_regime()
         if rest_changed and self.multigrid is not None:
             self.multigrid.rebuild()     # its coarse inverse is of the rest matrix at this dt
 
@@ -393,8 +398,18 @@ class ImplicitEuler:
 
     # ---- the step ---------------------------------------------------------------------------
 
+    def check_regime(self) -> None:
+        """Refuse, with a TissueError naming the fields, a material and gravity outside the regime
+        of the rotation method (tissue.fem.regime); run when built, when gravity changes and
+        before the first step after a change of material."""
+        material = self.model.material
+        check_regime(self.fem.rotation, material, self.gravity, self.model.points)
+        self._regime = (material, self.gravity)
+
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
+        if self._regime[0] is not self.model.material:
+            self.check_regime()
         k, o = self._step_pack(), self.scheme
         tol = self.fem.rotation_tolerance
         if self.execution == "serial" and not self.split_stages:
