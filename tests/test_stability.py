@@ -95,15 +95,90 @@ def test_inverted_initial_state_recovers(backend, mode, rotation):
     assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0, r
 
 
+# ---- refusals before the first step (tissue.fem.regime) ------------------------------------------
+
+@pytest.mark.parametrize("young, poisson", [(1e2, 0.0), (1e3, 0.45)])
+def test_polar_at_the_soft_end_is_refused_naming_the_fields(backend, young, poisson):
+    """ρgL/E = 9.8 and 0.98 > 0.5: the matrix's "polar" cells there ended with elements inverted
+    (the linear co-rotational energy has inverted minima under a load of the order of E)."""
+    r = outcome(dict(case="material", young=young, poisson=poisson, dt=0.04, rotation="polar"))
+    assert r["outcome"] == "refused", r
+    for field in ("rotation", "young", "density", "gravity", "rotation='invertible'"):
+        assert field in r["message"], (field, r["message"])
+
+
+@pytest.mark.parametrize("young, poisson", [(1e4, 0.49), (1e3, 0.45)])
+def test_large_nearly_incompressible_soft_is_refused_naming_the_fields(backend, young, poisson):
+    """(λ/μ) ρgL/E = 4.8 and 8.8 > 2: the matrix's "large" cells there gained energy (or ended
+    inverted at dt ≥ 0.1 s). What to use instead depends on the self-weight strain (0.098: "polar";
+    0.98: "invertible", since "polar" is refused there too)."""
+    r = outcome(dict(case="material", young=young, poisson=poisson, dt=0.04, rotation="large"))
+    assert r["outcome"] == "refused", r
+    instead = "polar" if young == 1e4 else "invertible"
+    for field in ("rotation", "poisson", "young", f"rotation='{instead}'"):
+        assert field in r["message"], (field, r["message"])
+
+
+def test_regime_criteria_against_hand_computed_numbers():
+    """s = ρ|g|L/E and (λ/μ) s by hand for the 0.1 m beam, at both sides of each threshold."""
+    from tissue.fem import Material
+    from tissue.fem.regime import check_regime, self_weight_strain
+
+    points = stability._mesh().points
+    g = (0.0, 0.0, -9.81)
+    assert self_weight_strain(Material(1e3, 0.3, 1000.0), g, 0.1) == pytest.approx(0.981, rel=1e-12)
+    check_regime("polar", Material(1.97e3, 0.45, 1000.0), g, points)           # s = 0.498
+    with pytest.raises(TissueError, match="'polar'"):
+        check_regime("polar", Material(1.95e3, 0.0, 1000.0), g, points)       # s = 0.503
+    check_regime("polar", Material(1e2, 0.3, 1000.0), (0.0, 0.0, 0.0), points)  # no gravity, no load
+    check_regime("large", Material(1e4, 0.45, 1000.0), g, points)              # 9 × 0.0981 = 0.88
+    with pytest.raises(TissueError, match="'large'"):
+        check_regime("large", Material(1e4, 0.48, 1000.0), g, points)         # 24 × 0.0981 = 2.35 ...
+    check_regime("large", Material(1e4, 0.475, 1000.0), g, points)            # ... 19 × 0.0981 = 1.86
+    for rotation in ("invertible", "linear"):
+        check_regime(rotation, Material(1e2, 0.499, 1000.0), g, points)
+
+
+def test_a_material_changed_on_a_built_solver_is_checked_before_its_next_step(backend):
+    from tissue.fem import Material
+
+    solver = stability.solver_for(dict(dt=0.04, rotation="polar"), stability._mesh(), Material(1e4, 0.45, 1000.0))
+    solver.model.set_material(Material(1e3, 0.45, 1000.0))
+    x = solver.positions()
+    with pytest.raises(TissueError, match="rotation: 'polar' is refused"):
+        solver.step()
+    assert np.array_equal(solver.positions(), x)
+    solver.model.set_material(Material(1e4, 0.45, 1000.0))
+    solver.step()
+    with pytest.raises(TissueError, match="gravity"):
+        solver.set_parameters(gravity=(0.0, 0.0, -98.1))
+    solver.set_parameters(gravity=(0.0, 0.0, -9.81))
+
+
+def test_every_scene_default_passes_the_regime_check():
+    """No refusal of what a user runs: each scene's bodies as the scene builds them."""
+    import scenes
+    from tissue.fem import Material
+    from tissue.fem.regime import check_regime
+    from tissue.scene import build_mesh
+
+    for name in scenes.names():
+        scene = scenes.load(name)()
+        for body_name, body in scene.bodies().items():
+            check_regime(body.rotation, Material(body.young, body.poisson, body.density), scene.gravity,
+                         build_mesh(body, body_name).points)
+
+
 @pytest.mark.slow   # compiles the "invertible" step (INVERTIBLE above)
 @pytest.mark.parametrize("young, poisson, dt", [(1e2, 0.49, 0.01), (1e3, 0.49, 0.04), (1e2, 0.3, 0.1)])
 def test_soft_end_recovers_from_inversion_with_the_compression_limit(backend, young, poisson, dt):
-    """The soft end (ρgL/E = 9.8 and 0.98): with "polar" the hanging beam ends with elements
-    inverted (the linear co-rotational energy's minimum has them); with "invertible" it ends with
-    none and its energy bounded. The last cell ended with 11 elements inverted under the quadratic
-    compression limit this barrier replaced (its clamp's corner elements held at det F ≈ 0.005)."""
+    """The soft end (ρgL/E = 9.8 and 0.98): "polar" is refused there (its hanging beam ended with
+    elements inverted: the linear co-rotational energy's minimum has them), and "invertible", the
+    rotation its message names, ends with none and its energy bounded. The last cell ended with 11
+    elements inverted under the quadratic compression limit this barrier replaced (its clamp's
+    corner elements held at det F ≈ 0.005)."""
     cell = dict(case="material", young=young, poisson=poisson, dt=dt)
-    assert outcome(dict(cell, rotation="polar"))["inverted_at_end"] > 0
+    assert "rotation='invertible'" in outcome(dict(cell, rotation="polar"))["message"]
     r = outcome(dict(cell, rotation="invertible"))
     assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0, r
 

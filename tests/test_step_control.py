@@ -150,11 +150,12 @@ def test_energy_kernel_matches_numpy(backend, rotation, execution):
     assert EnergyControl(solver).energy()[0] == pytest.approx(elastic, rel=1e-12)
 
 
-@pytest.mark.parametrize("young, dt", [(1e4, 0.5), (1e3, 0.1)])
+@pytest.mark.parametrize("young, dt", [(1e4, 0.5), (2e3, 0.1)])
 def test_soft_beam_at_large_steps_gains_energy_unless_checked(backend, young, dt):
-    """ρgL/E = 0.098 and 0.98: the beam swings down by order one of its length per step. Each
-    step solved to ‖r‖ ≤ 1e-3 ‖b‖, unchecked it gains more than the 1 % allowance (13 and 1.2
-    energy scales when measured); checked it stays bounded."""
+    """ρgL/E = 0.098 and 0.49 (the softest "polar" accepts: tissue.fem.regime): the beam swings
+    down by order one of its length per step. Each step solved to ‖r‖ ≤ 1e-3 ‖b‖, unchecked it
+    gains more than the 1 % allowance (13 and 2.2 energy scales when measured); checked it stays
+    bounded."""
     cell = dict(case="material", young=young, poisson=0.3, dt=dt, rotation="polar")
     unchecked = stability.simulate(dict(cell, step_control="none"))
     assert unchecked["outcome"] == "energy" and unchecked["cg_steps_at_cap"] == 0, unchecked

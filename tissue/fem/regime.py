@@ -13,11 +13,12 @@ the largest extent L of its rest shape:
 "polar": the linear co-rotational energy stays finite when an element goes flat (its stress at zero
 volume is of the order of E), so a load whose strain is of order one has minima with elements
 inverted, whatever the integrator: refused above POLAR_STRAIN (a strain of one half). "large":
-refused where its spurious volumetric stress is as large as the shear stress, (λ/μ) s ≥ 1. The
-stability matrix (bench/stability.py, docs/stability.md) agrees: on the 0.1 m cantilever, "polar"
-fails every cell at s = 9.8 and 0.98 but those with ν = 0 (and ν 0.3 at dt ≥ 0.04 s) and none at
-s ≤ 0.098; "large" fails no material cell below (λ/μ) s = 0.88 and every one from 4.8 where
-s ≥ 0.098. The cells these criteria refuse though they were bounded are counted there.
+refused where its spurious volumetric stress outgrows the shear stress, (λ/μ) s > LARGE_VOLUME.
+Both thresholds are "of order one" placed by the stability matrix (bench/stability.py,
+docs/stability.md; the 0.1 m cantilever): "polar" fails every cell at s = 9.8 and 0.98 but
+those with ν = 0 (and ν 0.3 at dt ≥ 0.04 s), and none at s ≤ 0.098; "large" fails no material
+cell at (λ/μ) s ≤ 1.47 and every one at 4.8 and above where s ≥ 0.098 (at s = 0.0098 it is
+bounded at 4.9). The cells these criteria refuse though they were bounded are counted there.
 "invertible" (a compression barrier) and "linear" (small strain by its user's choice) are not
 checked. The scenes (s ≤ 0.30, "polar") pass.
 """
@@ -28,7 +29,7 @@ from ..errors import TissueError
 from .material import Material
 
 POLAR_STRAIN = 0.5      # the largest self-weight strain "polar" accepts
-LARGE_VOLUME = 1.0      # the largest (λ/μ) s "large" accepts
+LARGE_VOLUME = 2.0      # the largest (λ/μ) s "large" accepts
 
 
 def self_weight_strain(material: Material, gravity, extent: float) -> float:
@@ -51,8 +52,8 @@ def check_regime(rotation: str, material: Material, gravity, points: np.ndarray)
         raise TissueError(f"rotation: 'polar' is refused for {what} > {POLAR_STRAIN:g}; linear co-rotational "
                           "elements have inverted equilibria under loads of the order of E. Use "
                           "rotation='invertible' (a compression barrier), or a larger young / smaller density")
-    if rotation == "large" and lam / mu * s >= LARGE_VOLUME:
+    if rotation == "large" and lam / mu * s > LARGE_VOLUME:
         instead = "polar" if s <= POLAR_STRAIN else "invertible"
         raise TissueError(f"rotation: 'large' is refused for {what}, λ/μ = {lam / mu:.3g}: (λ/μ)·s = "
-                          f"{lam / mu * s:.2g} ≥ {LARGE_VOLUME:g}, where its edge frames read shear as volume "
+                          f"{lam / mu * s:.2g} > {LARGE_VOLUME:g}, where its edge frames read shear as volume "
                           f"change and gain energy. Use rotation='{instead}', or a smaller poisson / larger young")
