@@ -155,6 +155,19 @@ def test_a_material_changed_on_a_built_solver_is_checked_before_its_next_step(ba
     solver.set_parameters(gravity=(0.0, 0.0, -9.81))
 
 
+def test_impact_onto_the_floor_is_refused_naming_dt_and_bounded_at_the_dt_it_names(backend):
+    """The 10 m/s impact onto the floor at dt 0.04 s (0.4 m a step, 20 times the beam's 2 cm):
+    "polar" gained 0.23 energy scales, "invertible" 1.8, "large" ended inverted; refused now. At
+    the dt the message names (2 ms) "polar" stays bounded with no element inverted."""
+    cell = dict(case="impact", mode="uniform", friction=0.5, rotation="polar")
+    r = outcome(dict(cell, dt=0.04, steps=250))
+    assert r["outcome"] == "refused" and r["message"].startswith("dt, velocities:"), r
+    dt = float(r["message"].split("Use dt ≤ ")[1].split(" s")[0])
+    assert dt == pytest.approx(stability.WIDTH / 10.0)
+    r = outcome(dict(cell, dt=dt, steps=100))
+    assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0 and r["contacts_max"] > 0, r
+
+
 def test_every_scene_default_passes_the_regime_check():
     """No refusal of what a user runs: each scene's bodies as the scene builds them."""
     import scenes

@@ -40,6 +40,7 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
+from ..fem.regime import check_contact_motion
 from ..mesh import boundary_faces
 from ..options import Options, require, validate
 from ..stats import Stats
@@ -162,6 +163,8 @@ class ContactStage:
         if len(dts) != 1:
             raise TissueError(f"contact: the soft bodies must share one time step, got {sorted(dts)}")
         self.dt = dts.pop()
+        for i, b in enumerate(self.bodies):     # before the first step: what the correction can undo
+            check_contact_motion(b.solver.model.points, b.solver.velocities(), self.dt, f"body {i}")
         self.obstacles = list(obstacles)
         for o in self.obstacles:
             if not isinstance(o, RigidObstacle):
