@@ -373,11 +373,14 @@ def refused_by_regime(cell: dict) -> bool:
     """Whether tissue.fem.regime refuses the cell before its first step (no simulation needed)."""
     from tissue.errors import TissueError
     from tissue.fem import Material
-    from tissue.fem.regime import check_regime
+    from tissue.fem.regime import check_contact_motion, check_regime
 
     material = Material(cell.get("young", TISSUE["young"]), cell.get("poisson", TISSUE["poisson"]), 1000.0)
+    mesh = _mesh(body_of(cell))
     try:
-        check_regime(cell["rotation"], material, GRAVITY, _mesh(body_of(cell)).points)
+        check_regime(cell["rotation"], material, GRAVITY, mesh.points)
+        if "friction" in cell:
+            check_contact_motion(mesh.points, initial_state(cell, mesh)[1], cell["dt"])
     except TissueError:
         return True
     return False
@@ -545,6 +548,8 @@ def main(argv=None):
     parser.add_argument("--material-only", action="store_true", help="only the E × ν × dt cells")
     parser.add_argument("--refused", action="store_true", help="only the cells tissue.fem.regime refuses "
                         "before their first step (cheap: none steps), replaced in stability.json like --only")
+    parser.add_argument("--missing", action="store_true", help="only the cells stability.json lacks (added "
+                        "to it); with --refused, both")
     parser.add_argument("--out", help="write the cells run to bench/results/OUT.json (and .md) alone, "
                                       "stability.json left as it is (a subset's before/after)")
     parser.add_argument("--step-control", choices=["energy", "none"], default=STEP_CONTROL,
@@ -574,8 +579,9 @@ def main(argv=None):
         cells = [c for c in cells if c["case"] != "material" or c["young"] in args.young]
     if args.material_only:
         cells = [c for c in cells if c["case"] == "material"]
-    if args.refused:
-        cells = [c for c in cells if refused_by_regime(c)]
+    if args.refused or args.missing:
+        stored = {cell_key(r) for r in json.loads((RESULTS / "stability.json").read_text())["cells"]}
+        cells = [c for c in cells if (args.refused and refused_by_regime(c)) or (args.missing and cell_key(c) not in stored)]
     if not cells:
         parser.error("no cells left by --only / --cases")
     for c in cells:
@@ -587,10 +593,10 @@ def main(argv=None):
         info = record(c, args)
         results = run_cells(c, stability.run_cell, cells, "stability")
     data = {"machine": info, "cells": results}
-    if (args.only or args.cases or args.young or args.refused) and name == "stability":   # the others stay
+    if (args.only or args.cases or args.young or args.refused or args.missing) and name == "stability":
         old = json.loads((RESULTS / "stability.json").read_text())
         records = {k: v for k, v in old.items() if k.startswith("machine")}
-        records[f"machine_{'_'.join([*(args.only or []), *(args.cases or []), *map(str, args.young or []), *(['refused'] if args.refused else [])])}"] = info
+        records[f"machine_{'_'.join([*(args.only or []), *(args.cases or []), *map(str, args.young or []), *(['refused'] if args.refused else []), *(['missing'] if args.missing else [])])}"] = info
         rerun = {cell_key(c) for c in cells}
         data = {**records, "cells": [r for r in old["cells"] if cell_key(r) not in rerun] + results}
         for r in data["cells"]:
