@@ -1,6 +1,7 @@
 """Stability on stiff and extreme cases: does every cell stay bounded, or get refused clearly?
 
     python -m bench.stability [--quick] [--scheduler tcp://host:port] [--workers 2]
+    python -m bench.stability --refused --missing     # after a change of tissue.fem.regime
 
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
 1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, the solver a user gets from the
@@ -32,7 +33,8 @@ the scene defaults: alarm distance 2 mm, tolerance 1e-6 m, 100 sweeps):
              free motion: 2,382 rows; once the slab is pressed thinner than g dt² + the alarm
              distance, the top vertices are within it of the floor in the free motion too: 3,465
              rows (722 contacts pushing);
-  impact and jerk with a floor under the cantilever (its bottom face resting on it), μ = 0.5.
+  impact and jerk with a floor under the cantilever (its bottom face resting on it), μ = 0.5; and
+             the 10 m/s impact onto it again at dt 2 ms (the dt its refusal at 0.04 s names).
 Each cell ends as (`classify`)
   bounded    finite at every step, and the total energy E (kinetic + elastic + gravity's
              potential) never above its start plus the work W done on the body by external and
@@ -41,7 +43,8 @@ Each cell ends as (`classify`)
              scale; and no element inverted at the end. The elastic energy is the model's own:
              the polar co-rotational energy for "large" and "polar" ("large" has no energy of its
              own: its forces are not a gradient), plus the compression limit's for "invertible";
-  refused    a TissueError before the first step, with its message (bad input);
+  refused    a TissueError before the first step, with its message (bad input, or a configuration
+             outside its element's or contact's regime: tissue.fem.regime);
   diverged   a TissueError during the run (e.g. "the simulation diverged ..."): a failure;
   inverted   bounded energy, but elements inverted at the end (a failure; whether the solver
              warned "N elements are inverted ..." is recorded with it);
@@ -520,6 +523,9 @@ WHY = {("large", "energy"): "'large': forces not an energy's gradient; gains und
 
 
 def note(r: dict) -> str:
+    """Why a cell failed, or the fields its refusal names (the whole message is in the JSON)."""
+    if r.get("outcome") == "refused":
+        return f"refused on {r['message'].split(':')[0]}"
     return (r.get("message") or r.get("error") or WHY.get((r.get("rotation"), r.get("outcome")), ""))[:80]
 
 
