@@ -182,6 +182,17 @@ def test_every_scene_default_passes_the_regime_check():
                          build_mesh(body, body_name).points)
 
 
+def test_a_scene_made_too_soft_is_refused_when_built(backend):
+    """The same check on the scenes' path: the liver at 300 Pa (ρ|g|L/E = 1.7) is refused when
+    its Simulation is built, the message naming the body and the field to set."""
+    import scenes
+    from tissue.scene import Simulation
+
+    scene = scenes.load("liver")().with_overrides(["liver.young=300"])
+    with pytest.raises(TissueError, match=r"liver: rotation: 'polar' is refused .* rotation='invertible'"):
+        Simulation(scene, arch="cpu", precision="f64")
+
+
 @pytest.mark.slow   # compiles the "invertible" step (INVERTIBLE above)
 @pytest.mark.parametrize("young, poisson, dt", [(1e2, 0.49, 0.01), (1e3, 0.49, 0.04), (1e2, 0.3, 0.1)])
 def test_soft_end_recovers_from_inversion_with_the_compression_limit(backend, young, poisson, dt):
