@@ -239,10 +239,10 @@ class ImplicitEuler:
                               "built; only max_iterations, tolerance and threshold change on a live solver")
         rest_changed = (new.dt, new.rayleigh_mass, new.rayleigh_stiffness) != \
             (self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
+        if new.gravity != self.gravity:
+            self.check_regime(new.gravity)      # before anything changes: a refusal leaves the solver as it was
         self.parameters = new
         self._upload_parameters()
-        if new.gravity != self._regime[1]:
-            self.check_regime()
         if rest_changed and self.multigrid is not None:
             self.multigrid.rebuild()     # its coarse inverse is of the rest matrix at this dt
 
@@ -398,17 +398,18 @@ class ImplicitEuler:
 
     # ---- the step ---------------------------------------------------------------------------
 
-    def check_regime(self) -> None:
-        """Refuse, with a TissueError naming the fields, a material and gravity outside the regime
-        of the rotation method (tissue.fem.regime); run when built, when gravity changes and
-        before the first step after a change of material."""
+    def check_regime(self, gravity=None) -> None:
+        """Refuse, with a TissueError naming the fields, the model's material under `gravity` (by
+        default the solver's) outside the regime of the rotation method (tissue.fem.regime); run
+        when built, before a change of gravity and before the first step after a change of
+        material."""
         material = self.model.material
-        check_regime(self.fem.rotation, material, self.gravity, self.model.points)
-        self._regime = (material, self.gravity)
+        check_regime(self.fem.rotation, material, self.gravity if gravity is None else gravity, self.model.points)
+        self._regime = material
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
-        if self._regime[0] is not self.model.material:
+        if self._regime is not self.model.material:
             self.check_regime()
         k, o = self._step_pack(), self.scheme
         tol = self.fem.rotation_tolerance
