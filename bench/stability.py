@@ -427,16 +427,34 @@ def counts(results: list[dict]) -> dict:
 TAG = "<!-- figures: bench/results/stability.json -->"   # tests/test_readme_figures.py checks these
 
 
+# Why the cells that still fail fail (docs/stability.md), by rotation and outcome.
+WHY = {("large", "energy"): "its forces are no energy's gradient, so gains under the step check's tolerance "
+                            "add up (docs/stability.md)"}
+
+
 def counts_markdown(results: list[dict]) -> list[str]:
-    """Cells per outcome and rotation."""
+    """Cells per outcome and rotation, and why the failing ones fail (`failing`)."""
     tallies = counts(results)
     kinds = ["bounded", "inverted", "energy", "diverged", "refused", "silent-nan"]
-    lines = [TAG, "| rotation | cells | " + " | ".join(kinds) + " | contact cells bounded |",
-             "|---|---|" + "---|" * len(kinds) + "---|"]
+    lines = [TAG, "| rotation | cells | " + " | ".join(kinds) + " | contact cells bounded | why the failing fail |",
+             "|---|---|" + "---|" * len(kinds) + "---|---|"]
     for name, t in [*tallies["by_rotation"].items(), ("all", tallies)]:
+        why = ("see above" if any(f["cells"] > f["bounded"] + f["refused"] for f in tallies["by_rotation"].values())
+               else "–") if name == "all" else failing([r for r in results if r.get("rotation") == name])
         lines.append(f"| {name} | {t['cells']} | " + " | ".join(str(t[k]) for k in kinds)
-                     + f" | {t['contact_bounded']} of {t['contact_cells']} |")
+                     + f" | {t['contact_bounded']} of {t['contact_cells']} | {why} |")
     return lines + [""]
+
+
+def failing(results: list[dict]) -> str:
+    """The failing cells of a table row, each group with its reason (`WHY`), or –."""
+    groups: dict[str, list[str]] = {}
+    for r in results:
+        if r.get("outcome") not in ("bounded", "refused"):
+            why = WHY.get((r.get("rotation"), r.get("outcome")), "not explained yet")
+            groups.setdefault(why, []).append(f"{r['case']} {r.get('mode') or ''}".strip()
+                                              + (" onto the floor" if "friction" in r else ""))
+    return "; ".join(f"{', '.join(cells)}: {why}" for why, cells in groups.items()) or "–"
 
 
 def matrix_markdown(results: list[dict]) -> str:
@@ -518,15 +536,11 @@ def outcome(r: dict) -> str:
     return r.get("outcome", "error") + (" ⚠" if r.get("inversion_warned") else "")
 
 
-# Why the cells that still fail fail (docs/stability.md), by rotation and outcome.
-WHY = {("large", "energy"): "'large': forces not an energy's gradient; gains under the check's 1e-3 add up"}
-
-
 def note(r: dict) -> str:
     """Why a cell failed, or the fields its refusal names (the whole message is in the JSON)."""
     if r.get("outcome") == "refused":
         return f"refused on {r['message'].split(':')[0]}"
-    return (r.get("message") or r.get("error") or WHY.get((r.get("rotation"), r.get("outcome")), ""))[:80]
+    return (r.get("message") or r.get("error") or "")[:80] or WHY.get((r.get("rotation"), r.get("outcome")), "")
 
 
 def rotations_list(text: str) -> list[str]:
