@@ -1,7 +1,7 @@
 """Where the 10 m/s floor impact's energy comes from: the contact correction, with the rest (warped)
 or the current (exact) compliance.
 
-    python -m bench.impact_correction [--rotation polar]
+    python -m bench.impact_correction [--rotations polar,invertible]
 
 The stability matrix's impact cell (bench/stability.py: the 240-tet cantilever resting on a floor,
 10 m/s down, E 1e4 Pa, ν 0.45, dt 0.04 s, 250 steps, the energy check) that tissue.fem.regime now
@@ -65,7 +65,7 @@ def run(rotation: str, compliance: str) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--rotation", default="polar", choices=("large", "polar", "invertible"))
+    parser.add_argument("--rotations", default="polar,invertible", type=lambda text: text.split(","))
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -73,9 +73,10 @@ def main(argv=None) -> None:
     info = machine()
     print_machine(info)
     rows = []
-    for compliance in ("warped", "exact"):
-        rows.append(run(args.rotation, compliance))
-        print(rows[-1], flush=True)
+    for rotation in args.rotations:
+        for compliance in ("warped", "exact"):
+            rows.append(run(rotation, compliance))
+            print(rows[-1], flush=True)
     write_results("impact_correction", dict(machine=info, rows=rows))
 
 
