@@ -173,7 +173,7 @@ def test_every_scene_default_passes_the_regime_check():
     import scenes
     from tissue.fem import Material
     from tissue.fem.regime import check_regime
-    from tissue.scene import build_mesh
+    from tissue.body import build_mesh
 
     for name in scenes.names():
         scene = scenes.load(name)()
@@ -186,7 +186,7 @@ def test_a_scene_made_too_soft_is_refused_when_built(backend):
     """The same check on the scenes' path: the liver at 300 Pa (ρ|g|L/E = 1.7) is refused when
     its Simulation is built, the message naming the body and the field to set."""
     import scenes
-    from tissue.scene import Simulation
+    from tissue.simulation import Simulation
 
     scene = scenes.load("liver")().with_overrides(["liver.young=300"])
     with pytest.raises(TissueError, match=r"liver: rotation: 'polar' is refused .* rotation='invertible'"):
