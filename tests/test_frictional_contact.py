@@ -451,46 +451,6 @@ def test_alart_curnier_jacobian_matches_finite_differences():
     assert closing.sum() > 5 and (~closing).sum() > 5 and stick.sum() > 0 and (closing & ~stick).sum() > 5
 
 
-@pytest.mark.parametrize("n, boost", [(40, 1.0), (260, 1.0), (40, 1e4)])
-def test_newton_step_without_explicit_rows_equals_the_whole_system(n, boost):
-    """newton_step solves the closing contacts' system less its rows free of W (sliding contacts'
-    slip direction, both tangents without friction): dr equals numpy's dense solve of the whole
-    system (A + B W + σI) dr = -Φ among the closing contacts, dr = -Φ elsewhere (σ: the shift, as
-    the step defines it). n = 260: ~780 closing rows, ~660 left, so also the float32 LU path."""
-    from tissue.contact import newton
-    from tissue.contact.newton import _alart_curnier, newton_step
-
-    rng = np.random.default_rng(21)
-    W = random_delassus(n, rng)
-    W /= np.mean(np.diagonal(W))
-    r = np.column_stack([rng.uniform(-0.2, 1.5, n), 0.3 * rng.standard_normal((n, 2))])
-    u = rng.standard_normal((n, 3))
-    calm = np.arange(0, n, 4)                             # sticking: small tangential velocity
-    u[calm, 1:] *= 1e-3
-    mu = rng.uniform(0.2, 0.8, n)
-    mu[1::7] = 0.0                                       # frictionless: both tangents explicit
-    rho = 3.0 / np.trace(W.reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :], axis1=1, axis2=2)
-    phi, A, B = _alart_curnier(r, u, mu, rho)
-    closing = r[:, 0] - rho * u[:, 0] > 0
-    sliding = closing & (np.abs(A[:, 1:, 1:]).sum(axis=(1, 2)) > 0) & (mu > 0)
-    assert sliding.sum() > n // 5 and (closing & (mu == 0)).sum() > 2 and (closing & ~sliding & (mu > 0)).sum() > 2
-
-    def block(rows, cols):
-        return W[np.ix_((3 * rows[:, None] + np.arange(3)).ravel(), (3 * cols[:, None] + np.arange(3)).ravel())]
-
-    dr = newton_step(W, block, r, phi, A, B, closing, boost)
-    act = np.flatnonzero(closing)
-    dofs = (3 * act[:, None] + np.arange(3)).ravel()
-    J = scipy.linalg.block_diag(*B[act]) @ W[np.ix_(dofs, dofs)] + scipy.linalg.block_diag(*A[act])
-    shift = boost * min(max(newton.REGULARISATION, np.linalg.norm(phi)), newton.MAX_SHIFT)
-    J += shift * np.mean(np.abs(np.diag(J))) * np.eye(len(dofs))
-    expect = -phi.copy()
-    carry = np.flatnonzero(~closing & (r != 0).any(axis=1))
-    rhs = -phi[act].ravel() - scipy.linalg.block_diag(*B[act]) @ block(act, carry) @ expect[carry].ravel()
-    expect[act] = np.linalg.solve(J, rhs).reshape(-1, 3)
-    np.testing.assert_allclose(dr, expect, rtol=0, atol=1e-9 * np.abs(expect).max())
-
-
 @pytest.mark.parametrize("method", ["newton", "auto"])
 def test_newton_single_contact_closed_form(solve, method):
     # As test_single_contact_stick_slide_separate: r_n = -q_n / w_n; stick r_t = -q_t / w_t,

@@ -60,8 +60,6 @@ PROXIMAL = 1e-3          # ... ε of W + εI, × W's mean diagonal
 PROXIMAL_STEPS = 5       # ... Newton steps on one proximal problem at most
 PROXIMAL_INNER = 0.1     # ... or until its |Φ| is at most this fraction of the true problem's error
 GS_FALLBACK = 10         # Gauss-Seidel sweeps run when the line search gives up
-EXPLICIT = 1e-12         # a singular value of a contact's B below this × its largest: a row free of W
-PIVOT = 1e-8             # ... eliminated where C_i's singular values are above this × |A_i + σI|
 
 
 def _rho(diagonal_blocks: np.ndarray) -> np.ndarray:
@@ -116,11 +114,10 @@ class _Shared:
 
 
 def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None):
-    """dr solving (A + B W + σI) dr = -Φ (σ the shift): dr_i = -Φ_i (= -r_i) for the separating
-    contacts, then the closing ones from the dense system among them, less its rows free of W
-    (see _explicit), by LAPACK's LU (_lu_solve). W: the array, or anything with W @ r;
-    W_block(rows, cols): W's (3|rows|, 3|cols|) block between contacts `rows` and `cols` (ids);
-    shared: a _Shared kept between the steps of one solve."""
+    """dr solving (A + B W) dr = -Φ: dr_i = -Φ_i (= -r_i) for the separating contacts, then the
+    closing ones from the dense system among them (LAPACK's LU; see _lu_solve). W: the array, or
+    anything with W @ r; W_block(rows, cols): W's (3|rows|, 3|cols|) block between contacts
+    `rows` and `cols` (ids); shared: a _Shared kept between the steps of one solve."""
     shared = _Shared() if shared is None else shared
     dr = -phi.copy()
     act = np.flatnonzero(closing)
@@ -135,75 +132,13 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None):
         all_closing = a == len(phi) and isinstance(W, np.ndarray)                  # (no copy)
         shared.closing, shared.Waa = act, W if all_closing else W_block(act, act)
     Waa = shared.Waa
+    J = np.matmul(B[act], Waa.reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
-    Ba, Aa = B[act], A[act]
+    J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
     shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
-    diagonal = np.einsum("iab,iba->ia", Ba, Waa.reshape(a, 3, a, 3)[idx, :, idx, :]) + np.einsum("iaa->ia", Aa)
-    Aa = Aa + shift * max(np.mean(np.abs(diagonal)), 1e-300) * np.eye(3)
-    U, null, V, pivot, beta_solve = _explicit_rows(Aa, Ba)
-    e = np.flatnonzero(null.any(axis=1))
-    if not len(e):
-        J = np.matmul(Ba, Waa.reshape(a, 3, k)).reshape(k, k)
-        J.reshape(a, 3, a, 3)[idx, :, idx, :] += Aa
-        dr[act] = _lu_solve(J, rhs.ravel()).reshape(-1, 3)
-        return dr
-    # Rows: contact i's by U_iᵀ (U_iᵀ B_i = S_i V_iᵀ: rows of zeros where S_i is), the explicit
-    # ones dropped; columns: contact i's by its C_i's right singular vectors V_i, those of the
-    # components the explicit rows fix (x_fixed) moved to the right-hand side.
-    Ut = U.transpose(0, 2, 1)
-    M, D, rhs = Ba.copy(), Aa.copy(), rhs.copy()
-    M[e], D[e], rhs[e] = Ut[e] @ Ba[e], Ut[e] @ Aa[e], np.einsum("iba,ib->ia", U[e], rhs[e])
-    x_fixed = beta_solve(rhs * null)                    # (a, 3): the fixed components, in V_i's coordinates
-    J = np.matmul(M, Waa.reshape(a, 3, k)).reshape(k, k)
-    J.reshape(a, 3, a, 3)[idx, :, idx, :] += D
-    rows = ~null.ravel()
-    plain = np.ones(a, bool)
-    plain[e] = False
-    n_plain, fixed, kept = 3 * (a - len(e)), pivot[e], ~pivot[e]
-    # (np.take, not fancy indexing: 2,166² gathered in ms, not tens of ms)
-    J = J.take(np.flatnonzero(rows), axis=0).take(np.r_[_dofs(np.flatnonzero(plain)), _dofs(e)], axis=1)
-    Y = np.matmul(J[:, n_plain:].reshape(len(J), -1, 3).transpose(1, 0, 2), V[e]).transpose(1, 0, 2)
-    J[:, n_plain:n_plain + np.count_nonzero(kept)] = Y[:, kept]
-    J = J[:, :n_plain + np.count_nonzero(kept)]
-    xe = x_fixed[e]
-    z = _lu_solve(J, rhs.ravel()[rows] - Y[:, fixed] @ xe[fixed])
-    dr[act[plain]] = z[:n_plain].reshape(-1, 3)
-    xe[kept] = z[n_plain:]
-    dr[act[e]] = np.einsum("iab,ib->ia", V[e], xe)
+    J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
+    dr[act] = _lu_solve(J, rhs.ravel()).reshape(-1, 3)
     return dr
-
-
-def _dofs(contacts):
-    return (3 * contacts[:, None] + np.arange(3)).ravel()
-
-
-def _explicit_rows(Aa, Ba):
-    """The rows of the closing contacts' Newton system free of W, and what they fix. Where
-    contact i's block B_i is singular (sliding: its reaction along the slip follows its normal
-    one, -μ dr_n + e·dr_t = -Φ_e; without friction both tangents), the rows of U_iᵀ (A_i + σI +
-    B_i W) (B_i = U_i S_i V_iᵀ) where S_i = 0 read only C_i dr_i = β_i, C_i those rows of U_iᵀ
-    (A_i + σI): in the coordinates of C_i's right singular vectors V_i (C_i = Uc_i Σ_i V_iᵀ) they
-    fix the first p_i components outright, and the system is solved for the rest: 3a - Σ p_i rows
-    instead of 3a, the same solution (on the press plate 300-450 of the 722 closing contacts
-    slide: an LU of ~1,750 rows against 2,166, 0.55 of the flops). Contacts whose C_i is not of
-    full row rank keep all their rows.
-
-    Returns U (a, 3, 3), null (a, 3: explicit rows), V (a, 3, 3), pivot (a, 3: fixed components,
-    null's count per contact) and beta_solve(β) -> those components (a, 3; zero elsewhere) from
-    the rotated right-hand side β = U_iᵀ rhs_i, explicit rows only."""
-    U, s, _ = np.linalg.svd(Ba)
-    null = s <= EXPLICIT * s[:, :1]
-    C = np.matmul(U.transpose(0, 2, 1), Aa) * null[:, :, None]
-    Uc, sc, Vct = np.linalg.svd(C)
-    pivot = sc > PIVOT * np.abs(Aa).max(axis=(1, 2))[:, None]
-    full_rank = pivot.sum(axis=1) == null.sum(axis=1)
-    null &= full_rank[:, None]
-    pivot &= full_rank[:, None]
-
-    def beta_solve(beta):
-        return np.divide(np.einsum("iba,ib->ia", Uc, beta), sc, out=np.zeros_like(beta), where=pivot)
-
-    return U, null, Vct.transpose(0, 2, 1), pivot, beta_solve
 
 
 def _lu_solve(J, b):
