@@ -126,7 +126,8 @@ def scene_runs(methods=("auto", "gauss_seidel")) -> dict:
             entry = {"steps": int(keep_steps.sum()), "rows_max": int(rows.max()), "lcp_ms_median": float(np.median(lcp)),
                      "lcp_ms_max": float(lcp.max()), "lcp_over_1s": int(np.sum(lcp > 1e3)),
                      "lcp_cpu_ms_median": float(np.median(lcp_cpu)), "lcp_cpu_ms_max": float(lcp_cpu.max()),
-                     "lcp_cpu_over_1s": int(np.sum(lcp_cpu > 1e3)), "residual_max": float(res.max()),
+                     "lcp_cpu_over_1s": int(np.sum(lcp_cpu > 1e3)), "lcp_cpu_ms": [round(float(x), 1) for x in lcp_cpu],
+                     "residual_max": float(res.max()),
                      "iterations_median": float(np.median(its)),
                      "steps_at_cap_above_tol": int(np.sum((its >= 100) & (res > TOL))),
                      "steps_above_tol_any_rows": int(np.sum(np.array(st.history["gs_residual"]) > TOL))}
