@@ -617,25 +617,35 @@ def test_auto_equals_gauss_seidel_where_the_sweeps_converge(solve):
 
 def test_newton_gmres_on_a_nearby_factor_matches_lapack():
     """_gmres: a system whose rows differ from the factorised one's in a few places (as a Newton
-    system after a few contacts changed state) solved to its tolerance, checked against numpy's
-    float64 solve; on an unrelated matrix it reports failure (None) instead of a poor x."""
+    system after a few contacts changed state), and one among partly other contacts (some opened,
+    some closed), solved to the tolerance, checked against numpy's float64 solve; on an unrelated
+    matrix it reports failure (None) instead of a poor x."""
     import scipy.linalg
 
-    from tissue.contact.newton import _gmres
+    from tissue.contact.newton import _gmres, _preconditioner
 
     rng = np.random.default_rng(31)
-    k = 700
+    k = 702  # 234 contacts
     J0 = np.eye(k) + rng.standard_normal((k, k)) / (3 * np.sqrt(k))
     lu = scipy.linalg.lu_factor(J0.astype(np.float32))
     J = J0 + 1e-3 * rng.standard_normal((k, k)) / np.sqrt(k)
     J[rng.choice(k, 6, replace=False)] += rng.standard_normal((6, k)) / np.sqrt(k)     # rows changed
     b = rng.standard_normal(k)
-    x = _gmres(J, b, lu, 1e-10, 30)
+    x = _gmres(J, b, _preconditioner(J, lu, np.arange(k // 3), np.arange(k // 3)), 1e-10, 30)
     reference = np.linalg.solve(J, b)
     assert np.linalg.norm(J @ x - b) <= 1e-10 * np.linalg.norm(b)
     assert np.linalg.norm(x - reference) <= 1e-8 * np.linalg.norm(reference)
     far = np.eye(k) + rng.standard_normal((k, k)) / np.sqrt(k)
-    assert _gmres(far, b, lu, 1e-10, 5) is None
+    assert _gmres(far, b, _preconditioner(far, lu, np.arange(k // 3), np.arange(k // 3)), 1e-10, 5) is None
+    # Contacts 5 and 9 no longer closing, 250 and 251 closing since: the old LU on the contacts in
+    # both, J's own 3×3 blocks on the new ones.
+    before, act = np.arange(k // 3), np.r_[np.setdiff1d(np.arange(k // 3), [5, 9]), 250, 251]
+    grown = np.eye(3 * (k // 3 + 20)) + rng.standard_normal((3 * (k // 3 + 20),) * 2) / (3 * np.sqrt(k))
+    grown[:k, :k] = J
+    dofs = (3 * act[:, None] + np.arange(3)).ravel()
+    Jn = grown[np.ix_(dofs, dofs)]
+    x = _gmres(Jn, b, _preconditioner(Jn, lu, before, act), 1e-10, 40)
+    assert np.linalg.norm(x - np.linalg.solve(Jn, b)) <= 1e-8 * np.linalg.norm(np.linalg.solve(Jn, b))
 
 
 @pytest.mark.parametrize("reuse", [False, True])

@@ -27,9 +27,10 @@ full one; without it, steps near a solution on singular W (liver_press: 12 closi
 rows outnumber their nodes' dofs) were cut to tiny ones, and Newton crawled to the cap.
 
 Reused factors: a large Newton system (SINGLE_ROWS rows or more) changes from one step to the
-next in the rows of the contacts whose stick/slide state changed, the sliding contacts' slip
-directions and the shift. Once at most REUSE_CHANGES of the closing contacts changed state since
-the last LU, the step is solved by GMRES preconditioned by that LU, a few O(k²) iterations instead
+next in the rows of the contacts whose state changed (stick/slide; closing or opening: rows and
+columns), the sliding contacts' slip directions and the shift. Once at most REUSE_CHANGES of the
+closing contacts changed state since the last LU, the step is solved by GMRES preconditioned by
+that LU (on the contacts closing in both; see _preconditioner), a few O(k²) iterations instead
 of an O(k³) factorisation, as an inexact Newton step (Dembo, Eisenstat & Steihaug 1982) whose
 relative residual follows Φ's progress (Eisenstat & Walker 1996, within FORCING); a fresh LU when
 GMRES does not get there within REUSE_ITERATIONS. On the press plate (2,166 closing rows, ~5
@@ -118,13 +119,14 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
 
 
 class _Shared:
-    """What consecutive Newton steps of one solve share while the same contacts close: W among
-    them, formed once (on the press plate's 2,166 closing rows a slice of W costs a third of the
-    LU; the line search rarely changes which contacts close), and the last float32 LU of the
-    Newton system with the stick/slide states it was formed at (see newton_step)."""
+    """What consecutive Newton steps of one solve share: W among the closing contacts, formed
+    once while they stay the same (on the press plate's 2,166 closing rows a slice of W costs a
+    third of the LU; the line search rarely changes which contacts close), and the last float32
+    LU of a Newton system with each contact's state then (0 separating, 1 sticking, 2 sliding;
+    see newton_step)."""
 
     def __init__(self):
-        self.closing, self.Waa, self.lu, self.sliding = None, None, None, None
+        self.closing, self.Waa, self.lu, self.state = None, None, None, None
 
 
 def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forcing=None):
@@ -145,7 +147,7 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
         rhs -= np.matmul(B[act], (W_block(act, carry) @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
     if shared.closing is None or not np.array_equal(shared.closing, act):
         all_closing = a == len(phi) and isinstance(W, np.ndarray)                  # (no copy)
-        shared.closing, shared.Waa, shared.lu = act, W if all_closing else W_block(act, act), None
+        shared.closing, shared.Waa = act, W if all_closing else W_block(act, act)
     Waa = shared.Waa
     J = np.matmul(B[act], Waa.reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
@@ -153,17 +155,20 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
     J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
     # Once few contacts change state from one step to the next, J differs from the last factorised
-    # one in their rows, the sliding contacts' slip directions and the shift: GMRES preconditioned
-    # by the last LU then takes a few O(k²) iterations (on the press plate ~5 ms each), not a new
-    # O(k³) LU (~100 ms). An inexact Newton step (Dembo, Eisenstat & Steihaug 1982): its relative
-    # residual `forcing` (solve's, small once Φ falls fast) keeps the convergence fast.
-    sliding = A[act].any(axis=(1, 2))               # (a closing contact's A is zero iff it sticks)
+    # one in their rows (and columns, for those that close or open), the sliding contacts' slip
+    # directions and the shift: GMRES preconditioned by the last LU then takes a few O(k²)
+    # iterations (on the press plate ~5 ms each), not a new O(k³) LU (~100 ms). An inexact Newton
+    # step (Dembo, Eisenstat & Steihaug 1982): its relative residual `forcing` (solve's, small once
+    # Φ falls fast) keeps the convergence fast.
+    state = np.zeros(len(phi), np.int8)
+    state[act] = 1 + A[act].any(axis=(1, 2))        # (a closing contact's A is zero iff it sticks)
     x = None
-    if shared.lu is not None and np.count_nonzero(sliding != shared.sliding) <= REUSE_CHANGES * a:
-        x = _gmres(J, rhs.ravel(), shared.lu, FORCING[0] if forcing is None else forcing, REUSE_ITERATIONS)
+    if shared.lu is not None and np.count_nonzero(state != shared.state) <= REUSE_CHANGES * a:
+        x = _gmres(J, rhs.ravel(), _preconditioner(J, shared.lu, np.flatnonzero(shared.state), act),
+                   FORCING[0] if forcing is None else forcing, REUSE_ITERATIONS)
     if x is None:
         x, shared.lu = _factor_solve(J, rhs.ravel())
-        shared.sliding = sliding
+        shared.state = state
     dr[act] = x.reshape(-1, 3)
     return dr
 
@@ -191,9 +196,42 @@ def _factor_solve(J, b):
                                  check_finite=False), None
 
 
-def _gmres(J, b, lu, tol, iterations):
+def _preconditioner(J, lu, before, act):
+    """v -> an approximation of J⁻¹ v (J the Newton system among the closing contacts `act`, ids)
+    from lu, the float32 LU of an earlier one among the contacts `before`: its solve on the
+    contacts in both (zero on those no longer closing), the inverse of J's 3×3 diagonal block on
+    those closing since."""
+    def solve(v):
+        return scipy.linalg.lu_solve(lu, v.astype(np.float32), check_finite=False)
+
+    if np.array_equal(before, act):
+        return solve
+    both = np.isin(act, before)
+    old, new = _dofs(np.searchsorted(before, act[both])), _dofs(np.flatnonzero(both))
+    fresh = np.flatnonzero(~both)
+    a = len(act)
+    inverses = np.linalg.pinv(J.reshape(a, 3, a, 3)[fresh, :, fresh, :])
+
+    def apply(v):
+        w = np.zeros(3 * len(before))
+        w[old] = v[new]
+        out = np.empty_like(v)
+        out[new] = solve(w)[old]
+        out[_dofs(fresh)] = np.einsum("iab,ib->ia", inverses, v[_dofs(fresh)].reshape(-1, 3)).ravel()
+        return out
+
+    return apply
+
+
+def _dofs(contacts):
+    """The rows 3i, 3i + 1, 3i + 2 of each contact i."""
+    return (3 * np.asarray(contacts)[:, None] + np.arange(3)).ravel()
+
+
+def _gmres(J, b, precondition, tol, iterations):
     """x with |J x - b| <= tol |b| by GMRES (Saad & Schultz 1986), preconditioned on the right
-    by lu (the float32 LU of a nearby matrix), or None when `iterations` do not reach it. The
+    by precondition(v) ≈ J⁻¹ v (from the LU of a nearby matrix), or None when `iterations` do not
+    reach it. The
     preconditioned vectors are kept (as flexible GMRES does), so x is J's own least-squares
     combination whatever the float32 rounding; the residual is checked afresh at the end."""
     beta = np.linalg.norm(b)
@@ -203,7 +241,7 @@ def _gmres(J, b, lu, tol, iterations):
     H = np.zeros((iterations + 1, iterations))
     V[0] = b / beta
     for j in range(iterations):
-        Z[j] = scipy.linalg.lu_solve(lu, V[j].astype(np.float32), check_finite=False)
+        Z[j] = precondition(V[j])
         w = J @ Z[j]
         for _ in range(2):                          # classical Gram-Schmidt, twice: orthogonal to rounding
             h = V[:j + 1] @ w
