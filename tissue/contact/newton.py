@@ -231,7 +231,7 @@ def _dofs(contacts):
 def _gmres(J, b, precondition, tol, iterations):
     """x with |J x - b| <= tol |b| by GMRES (Saad & Schultz 1986), preconditioned on the right
     by precondition(v) ≈ J⁻¹ v (from the LU of a nearby matrix), or None when `iterations` do not
-    reach it. The
+    reach it (or, from the third on, would not at the rate so far: a fresh LU costs less then). The
     preconditioned vectors are kept (as flexible GMRES does), so x is J's own least-squares
     combination whatever the float32 rounding; the residual is checked afresh at the end."""
     beta = np.linalg.norm(b)
@@ -251,9 +251,12 @@ def _gmres(J, b, precondition, tol, iterations):
         e1 = np.zeros(j + 2)
         e1[0] = beta
         y = np.linalg.lstsq(H[:j + 2, :j + 1], e1, rcond=None)[0]
-        if np.linalg.norm(H[:j + 2, :j + 1] @ y - e1) <= 0.5 * tol * beta or H[j + 1, j] == 0.0:
+        fraction = np.linalg.norm(H[:j + 2, :j + 1] @ y - e1) / beta
+        if fraction <= 0.5 * tol or H[j + 1, j] == 0.0:
             x = y @ Z[:j + 1]
             return x if np.linalg.norm(J @ x - b) <= tol * beta else None
+        if j >= 2 and fraction ** (iterations / (j + 1)) > tol:
+            return None                             # at its rate so far it would not get there: stop early
         V[j + 1] = w / H[j + 1, j]
     return None
 
