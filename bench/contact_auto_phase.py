@@ -1,12 +1,18 @@
-"""auto's sweep phase on the press plate, side by side: each contact problem of bench.stability's
-press plate cell (every STEP_EVERY-th step, as the stage posed it: W factored or dense, the stage's
-warm start) solved with method "auto" under each phase length of large problems
-(frictional_contact.AUTO_PHASE_LARGE), alternately in one process, CPU time the best of REPEATS.
+"""auto on the press plate, variants side by side: each contact problem of bench.stability's press
+plate cell (every STEP_EVERY-th step, as the stage posed it: W factored or dense, the stage's warm
+start) solved with method "auto" under each variant of VARIANTS (settings of tissue.contact.newton
+or frictional_contact), alternately in one process, CPU time the best of REPEATS.
 
     OPENBLAS_NUM_THREADS=1 python -m bench.contact_auto_phase    # ~5 min; bench/results/contact_auto_phase.json
 
-Per phase: the CPU time per solve (median, max, count over 1 s), Newton steps and sweeps together
-(median), and the largest natural-map residual, recomputed in numpy from W.
+Variants: "fresh LU", every Newton step factorised (newton.REUSE_ITERATIONS = 0: the solver before
+the LU was reused), and "reused LU", the default (GMRES on the solve's last LU once few contacts
+change state; see tissue.contact.newton). (Before, the variants were auto's sweep phase on large
+problems, 16 and 4: commit f805f65's JSON.)
+
+Per variant: the CPU time per solve (median, max, count over 1 s), Newton steps and sweeps
+together (median), the LUs per solve (median, max), and the largest natural-map residual,
+recomputed in numpy from W.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import numpy as np
 
 from bench.common import machine, print_machine, write_results
 
-PHASES = (16, 4)          # 16: auto's phase on every problem before; 4: on large ones now
+VARIANTS = {"fresh LU": {"REUSE_ITERATIONS": 0}, "reused LU": {}}
 STEP_EVERY = 3
 REPEATS = 2
 TOL = 1e-6
@@ -48,49 +54,65 @@ def record_press() -> list[dict]:
 
 
 def main(argv=None) -> int:
+    import scipy.linalg
+
     from tissue import backend
 
     backend.init()
-    from tissue.contact import frictional_contact as fc
+    from tissue.contact import newton
     from tissue.contact.frictional_contact import FrictionalContactSolver, natural_map_residual
 
     info = machine()
     info["openblas_threads"] = os.environ.get("OPENBLAS_NUM_THREADS", "default")
     print_machine(info)
     problems = record_press()
-    large = fc.AUTO_PHASE_LARGE
-    runs = {phase: [] for phase in PHASES}
+    defaults = {name: getattr(newton, name) for settings in VARIANTS.values() for name in settings}
+    runs = {variant: [] for variant in VARIANTS}
+    factors, lu_factor = [], scipy.linalg.lu_factor
+
+    def counted(a, **kw):
+        factors.append(len(a))
+        return lu_factor(a, **kw)
+
+    scipy.linalg.lu_factor = counted
     try:
         for p in problems:
             line = []
-            for phase in PHASES:
-                fc.AUTO_PHASE_LARGE = phase
+            for variant, settings in VARIANTS.items():
+                for name, value in {**defaults, **settings}.items():
+                    setattr(newton, name, value)
                 best = None
                 for _ in range(REPEATS):
                     solver = FrictionalContactSolver(p["W"], p["mu"], method="auto", check=False)
+                    factors.clear()
                     start = time.process_time()
                     r, result = solver.solve(p["q"], TOL, 100, p["r0"])
                     cpu = time.process_time() - start
                     best = cpu if best is None else min(best, cpu)
                 residual = natural_map_residual(p["W"], p["q"], p["mu"], r)
-                runs[phase].append(dict(step=p["step"], rows=len(p["q"]), cpu_s=best, iterations=result.iterations,
-                                        residual=residual))
-                line.append(f"phase {phase}: {1e3 * best:6.0f} ms CPU, {result.iterations:3d} its, {residual:.1e}")
+                lus = sum(k >= 1000 for k in factors)
+                runs[variant].append(dict(step=p["step"], rows=len(p["q"]), cpu_s=best, iterations=result.iterations,
+                                          lus=lus, residual=residual))
+                line.append(f"{variant}: {1e3 * best:5.0f} ms CPU, {result.iterations:3d} its, {lus} LUs, {residual:.1e}")
             print(f"step {p['step']:3d} {len(p['q'])} rows  " + "  |  ".join(line), flush=True)
     finally:
-        fc.AUTO_PHASE_LARGE = large
+        scipy.linalg.lu_factor = lu_factor
+        for name, value in defaults.items():
+            setattr(newton, name, value)
     summary = {}
-    for phase, rs in runs.items():
-        cpu = np.array([x["cpu_s"] for x in rs])
-        summary[phase] = {"problems": len(rs), "cpu_ms_median": float(1e3 * np.median(cpu)),
-                          "cpu_ms_max": float(1e3 * cpu.max()), "over_1s": int(np.sum(cpu > 1.0)),
-                          "iterations_median": float(np.median([x["iterations"] for x in rs])),
-                          "residual_max": float(max(x["residual"] for x in rs))}
-        s = summary[phase]
-        print(f"phase {phase:2d}: CPU {s['cpu_ms_median']:.0f} ms median, {s['cpu_ms_max']:.0f} max, {s['over_1s']} of "
-              f"{s['problems']} over 1 s; iterations {s['iterations_median']:.0f}; residual max {s['residual_max']:.1e}")
+    for variant, rs in runs.items():
+        cpu, lus = np.array([x["cpu_s"] for x in rs]), [x["lus"] for x in rs]
+        summary[variant] = {"problems": len(rs), "cpu_ms_median": float(1e3 * np.median(cpu)),
+                            "cpu_ms_max": float(1e3 * cpu.max()), "over_1s": int(np.sum(cpu > 1.0)),
+                            "iterations_median": float(np.median([x["iterations"] for x in rs])),
+                            "lus_median": float(np.median(lus)), "lus_max": int(max(lus)),
+                            "residual_max": float(max(x["residual"] for x in rs))}
+        s = summary[variant]
+        print(f"{variant}: CPU {s['cpu_ms_median']:.0f} ms median, {s['cpu_ms_max']:.0f} max, {s['over_1s']} of "
+              f"{s['problems']} over 1 s; iterations {s['iterations_median']:.0f}; LUs {s['lus_median']:.0f} "
+              f"(max {s['lus_max']}); residual max {s['residual_max']:.1e}")
     write_results("contact_auto_phase", {"machine": info, "tolerance": TOL, "step_every": STEP_EVERY,
-                                         "summary": summary, "problems": runs})
+                                         "variants": VARIANTS, "summary": summary, "problems": runs})
     return 0
 
 

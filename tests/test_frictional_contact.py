@@ -615,6 +615,71 @@ def test_auto_equals_gauss_seidel_where_the_sweeps_converge(solve):
     assert info.converged and natural_map(W, q, mu, r) <= 1e-10
 
 
+def test_newton_gmres_on_a_nearby_factor_matches_lapack():
+    """_gmres: a system whose rows differ from the factorised one's in a few places (as a Newton
+    system after a few contacts changed state), and one among partly other contacts (some opened,
+    some closed), solved to the tolerance, checked against numpy's float64 solve; on an unrelated
+    matrix it reports failure (None) instead of a poor x."""
+    import scipy.linalg
+
+    from tissue.contact.newton import _gmres, _preconditioner
+
+    rng = np.random.default_rng(31)
+    k = 702  # 234 contacts
+    J0 = np.eye(k) + rng.standard_normal((k, k)) / (3 * np.sqrt(k))
+    lu = scipy.linalg.lu_factor(J0.astype(np.float32))
+    J = J0 + 1e-3 * rng.standard_normal((k, k)) / np.sqrt(k)
+    J[rng.choice(k, 6, replace=False)] += rng.standard_normal((6, k)) / np.sqrt(k)     # rows changed
+    b = rng.standard_normal(k)
+    x = _gmres(J, b, _preconditioner(J, lu, np.arange(k // 3), np.arange(k // 3)), 1e-10, 30)
+    reference = np.linalg.solve(J, b)
+    assert np.linalg.norm(J @ x - b) <= 1e-10 * np.linalg.norm(b)
+    assert np.linalg.norm(x - reference) <= 1e-8 * np.linalg.norm(reference)
+    far = np.eye(k) + rng.standard_normal((k, k)) / np.sqrt(k)
+    assert _gmres(far, b, _preconditioner(far, lu, np.arange(k // 3), np.arange(k // 3)), 1e-10, 5) is None
+    # Contacts 5 and 9 no longer closing, 250 and 251 closing since: the old LU on the contacts in
+    # both, J's own 3×3 blocks on the new ones.
+    before, act = np.arange(k // 3), np.r_[np.setdiff1d(np.arange(k // 3), [5, 9]), 250, 251]
+    grown = np.eye(3 * (k // 3 + 20)) + rng.standard_normal((3 * (k // 3 + 20),) * 2) / (3 * np.sqrt(k))
+    grown[:k, :k] = J
+    dofs = (3 * act[:, None] + np.arange(3)).ravel()
+    Jn = grown[np.ix_(dofs, dofs)]
+    x = _gmres(Jn, b, _preconditioner(Jn, lu, before, act), 1e-10, 40)
+    assert np.linalg.norm(x - np.linalg.solve(Jn, b)) <= 1e-8 * np.linalg.norm(np.linalg.solve(Jn, b))
+
+
+@pytest.mark.parametrize("reuse", [False, True])
+def test_newton_reusing_its_factor_solves_the_same_problem(solve, monkeypatch, reuse):
+    """A Newton system of more than SINGLE_ROWS rows: with the last LU reused through GMRES
+    (newton.REUSE_CHANGES = 1: whenever the closing contacts are the same) and without (no GMRES
+    iterations: a fresh LU every step), the
+    solve ends at the tolerance (the natural-map residual recomputed here) and matches the other
+    within it; with reuse, fewer LUs than Newton steps."""
+    import scipy.linalg
+
+    from tissue.contact import newton
+
+    factors, steps, lu_factor, newton_step = [], [], scipy.linalg.lu_factor, newton.newton_step
+    monkeypatch.setattr(scipy.linalg, "lu_factor", lambda a, **kw: factors.append(len(a)) or lu_factor(a, **kw))
+    monkeypatch.setattr(newton, "newton_step", lambda *a, **k: steps.append(1) or newton_step(*a, **k))
+    monkeypatch.setattr(newton, "REUSE_CHANGES", 1.0)
+    if not reuse:
+        monkeypatch.setattr(newton, "REUSE_ITERATIONS", 0)
+    rng = np.random.default_rng(8)
+    W = random_delassus(300, rng)
+    W /= np.mean(np.diagonal(W))
+    mu = rng.uniform(0.2, 0.8, 300)
+    q, r_star = solvable_problem(W, mu, rng)
+    r, info = solve(W, q, mu, tol=1e-9, max_iterations=100, method="newton")
+    assert info.converged and natural_map(W, q, mu, r) <= 1e-9
+    assert max(factors) >= newton.SINGLE_ROWS
+    np.testing.assert_allclose(r, r_star, atol=1e-6 * np.abs(r_star).max())
+    if reuse:
+        assert len(factors) < len(steps)
+    else:
+        assert len(factors) >= len(steps)
+
+
 @pytest.mark.parametrize("condition, factorised", [(1e2, ["float32"]), (1e12, ["float32", "float64"])])
 def test_newton_system_solve_matches_lapack(monkeypatch, condition, factorised):
     """Newton's large systems: LU in float32 refined in float64 (well conditioned), or float64's
