@@ -215,7 +215,11 @@ class FrictionalContactSolver:
         dims, scale = [0, 0], 1.0
         if self.layout == DENSE:
             W = self.W.toarray() if sp.issparse(self.W) else self.W
-            abc = (st.put("W", np.ravel(W).astype(npr, copy=False), real), none, none)
+            kept = st.get("W", m * m, real)
+            if not (st.host and W.flags.c_contiguous and W.dtype == kept.dtype      # written in place: dense_buffer
+                    and W.__array_interface__["data"][0] == kept.__array_interface__["data"][0]):
+                kept = st.put("W", np.ravel(W), real)
+            abc = (kept, none, none)
         elif self.layout == CSR:
             B = sp.bsr_matrix(sp.csr_matrix(self.W), blocksize=(3, 3))   # csr_matrix drops zeros
             B.sort_indices()
@@ -391,8 +395,8 @@ class FrictionalContactSolver:
 
 def dense_buffer(storage: Storage, m: int) -> np.ndarray:
     """An (m, m) float64 array for W: on the CPU in float64, the memory where a solver on `storage`
-    keeps a dense W, so that what the caller writes there is read in place (Storage.put writes
-    nothing); elsewhere a new array."""
+    keeps a dense W, so that what the caller writes there is read in place (no copy); elsewhere a
+    new array."""
     if storage.host and backend.current().real == ti.f64:
         return np.asarray(storage.get("W", m * m, ti.f64)[:m * m]).reshape(m, m)
     return np.empty((m, m))

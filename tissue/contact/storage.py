@@ -84,14 +84,10 @@ class Storage:
     def put(self, name, values: np.ndarray, dtype, tail: tuple = ()):
         """The array `name` (as `get`) holding `values` in its first len(values) elements: on the
         CPU written through a numpy view of its memory kept with it (no copy kernel, no view made
-        per call; nothing written when `values` is that memory already, see `view`), elsewhere
-        uploaded padded to its length."""
+        per call), elsewhere uploaded padded to its length."""
         array = self.get(name, len(values), dtype, tail)
         if backend.current().arch == "cpu":
-            target = self.view(name)[:len(values)]
-            if not (isinstance(values, np.ndarray) and values.shape == target.shape and values.dtype == target.dtype
-                    and values.__array_interface__["data"][0] == target.__array_interface__["data"][0]):
-                target[...] = values
+            self.view(name)[:len(values)] = values
         else:
             padded = np.zeros((array.shape[0],) + np.shape(values)[1:], np.asarray(values).dtype)
             padded[:len(values)] = values
