@@ -43,7 +43,7 @@ backend.init("cpu")
 spec = importlib.util.spec_from_file_location("bench_contact_measuring", os.environ["TISSUE_BENCH_CONTACT"])
 bc = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(bc)
-from tissue.simulation import Simulation
+Simulation = bc.simulation_class()
 
 steps_cpu = []                            # (CPU s of the process, rows) of every step
 step = Simulation.step
