@@ -56,7 +56,9 @@ class LaunchCounter:
     (Kernel.__call__) and those replayed by tissue.launch (whose first, recording launch counts
     once); and the numpy<->device copies: numpy arrays handed to a kernel (`numpy_arguments`: on
     the CPU read in place, but set argument by argument, 15-30 µs each; elsewhere a transfer each)
-    and Taichi's from_numpy / to_numpy copy kernels (`copies`, among the launches too)."""
+    and Taichi's from_numpy / to_numpy copy kernels (`copies`, among the launches too); and each
+    counted launch's wall time from the Python call to its return (`seconds`, by kernel: argument
+    setting or replay, and the kernel's work; CPU launches return when done)."""
 
     COPY_KERNELS = ("ext_arr_to_ndarray", "ndarray_to_ext_arr", "ext_arr_to_ndarray_matrix",
                     "ndarray_matrix_to_ext_arr")
@@ -67,22 +69,32 @@ class LaunchCounter:
         from tissue import launch
 
         self.counts, self.numpy_arguments, self.paused = Counter(), 0, False
+        self.seconds = {}
         self._patched = [(kernel_impl.Kernel, kernel_impl.Kernel.__call__), (launch.Replayed, launch.Replayed.__call__)]
         taichi_call, replay_call = (original for _, original in self._patched)
         counter, inside = self, [False]
 
+        def timed(name, launch):
+            start = time.perf_counter()
+            try:
+                return launch()
+            finally:
+                counter.seconds.setdefault(name, []).append(time.perf_counter() - start)
+
         def call(kernel, *args, **kwargs):
-            if not counter.paused and not inside[0]:
-                counter.counts[kernel.func.__name__] += 1
-                counter.numpy_arguments += sum(isinstance(a, np.ndarray) for a in args)
-            return taichi_call(kernel, *args, **kwargs)
+            if counter.paused or inside[0]:
+                return taichi_call(kernel, *args, **kwargs)
+            counter.counts[kernel.func.__name__] += 1
+            counter.numpy_arguments += sum(isinstance(a, np.ndarray) for a in args)
+            return timed(kernel.func.__name__, lambda: taichi_call(kernel, *args, **kwargs))
 
         def replay(replayed, *args):
-            if not counter.paused:
-                counter.counts[replayed.primal.func.__name__] += 1
             inside[0] = True
             try:
-                return replay_call(replayed, *args)
+                if counter.paused:
+                    return replay_call(replayed, *args)
+                counter.counts[replayed.primal.func.__name__] += 1
+                return timed(replayed.primal.func.__name__, lambda: replay_call(replayed, *args))
             finally:
                 inside[0] = False
 
@@ -115,11 +127,13 @@ def factorization(kind: str):
 
 def simulation_class():
     """`tissue.simulation.Simulation`; `bench.contact_versus` also runs this file in checkouts from
-    before it moved out of `tissue.scene`."""
+    before it moved out of `tissue.scene`. `tissue.scene` is asked first: in an old checkout,
+    `tissue.simulation` would be found all the same, in the main checkout that the virtual
+    environment installs in editable mode (its finder maps the package's missing modules there)."""
     try:
-        from tissue.simulation import Simulation
-    except ModuleNotFoundError:
         from tissue.scene import Simulation
+    except ImportError:
+        from tissue.simulation import Simulation
     return Simulation
 
 
@@ -286,7 +300,7 @@ def floor_profile(steps: int = 100, settle: int = 40, step_control: str | None =
     steps): medians of each stage's wall ms (free motion, the contact stage's five stages, and
     the Python between them, `glue`: the contact stage less its stages), CPU ms of a whole step,
     kernel launches per step by kernel (free motion and contact stage apart; replayed ones
-    included), numpy arrays handed to kernels and from_numpy/to_numpy copies per step, and the
+    included) and each kernel's median wall ms per launch, numpy arrays handed to kernels and from_numpy/to_numpy copies per step, and the
     contact stage's most costly Python functions by own time (cProfile, another `steps` steps:
     the profiler inflates small calls, so read them as a ranking)."""
     import cProfile
@@ -346,6 +360,7 @@ def floor_profile(steps: int = 100, settle: int = 40, step_control: str | None =
             "rows_median": float(np.median(sim.stats.history["rows"][settle:])),
             "launches_per_step": {k: sum(c.values()) / steps for k, c in counts.items()},
             "launches_by_kernel": {k: {n: v / steps for n, v in c.most_common()} for k, c in counts.items()},
+            "launch_ms_median": {n: 1e3 * float(np.median(t)) for n, t in counter.seconds.items()},
             "numpy_arguments_per_step": {k: v / steps for k, v in numpy_args.items()},
             "copies_per_step": {k: v / steps for k, v in copies.items()},
             "python_functions": functions}
@@ -357,7 +372,8 @@ def print_floor_profile(p: dict, title: str) -> None:
           + ", ".join(f"{k} {v:.3f}" for k, v in ms.items()))
     for part in ("free_motion", "contact"):
         print(f"  {part}: {p['launches_per_step'][part]:.1f} launches/step ("
-              + ", ".join(f"{k} {v:.1f}" for k, v in p["launches_by_kernel"][part].items())
+              + ", ".join(f"{k} {v:.1f} × {p['launch_ms_median'][k]:.3f} ms"
+                          for k, v in p["launches_by_kernel"][part].items())
               + f"); numpy arguments {p['numpy_arguments_per_step'][part]:.1f}, copies {p['copies_per_step'][part]:.1f}")
     print("  contact stage, own time by function (cProfile):")
     for f in p["python_functions"][:10]:

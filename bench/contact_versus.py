@@ -1,6 +1,6 @@
 """The contact step of this checkout against another commit, measured alternately in one session.
 
-    python -m bench.contact_versus [--other 65424df] [--rounds 3]
+    python -m bench.contact_versus [--other 65424df] [--rounds 3] [--out contact_versus]
 
 This shared machine's speed drifts by tens of percent within an hour, so contact steps of two
 commits are compared side by side: subprocesses of each checkout alternate, round after round, each
@@ -16,7 +16,8 @@ the wall clock when other jobs share the two cores), Taichi launches per step (r
 included) and numpy arrays handed to kernels per step, and the steps that ended above the solver's
 tolerance (1e-6 m); and this / other for the total and the CPU time (median over rounds, and the
 least over rounds: the round the machine's other jobs disturbed least). The other commit is checked
-out with `git worktree` into a temporary folder. Writes bench/results/contact_versus.json.
+out with `git worktree` into a temporary folder. Writes bench/results/contact_versus.json (or
+OUT.json with --out: a comparison with another commit beside it).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ backend.init("cpu")
 spec = importlib.util.spec_from_file_location("bench_contact_measuring", os.environ["TISSUE_BENCH_CONTACT"])
 bc = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(bc)
-from tissue.simulation import Simulation
+Simulation = bc.simulation_class()
 
 steps_cpu = []                            # (CPU s of the process, rows) of every step
 step = Simulation.step
@@ -118,6 +119,7 @@ def main(argv=None) -> None:
     parser.add_argument("--other", default="65424df", help="the commit to compare with (default: 65424df, before "
                         "the contact step's replayed launches)")
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--out", default="contact_versus", help="the results' name under bench/results")
     args = parser.parse_args(argv)
 
     from tissue import backend
@@ -145,7 +147,7 @@ def main(argv=None) -> None:
             print(f"{label:<8}" + "".join(f"{e['ms_per_step'][c]:13.2f}" for c in COLUMNS)
                   + f"{e['cpu_ms_per_step']:10.2f}{e['cpu_ms_per_step_min']:10.2f}{e['launches_per_step']:10.1f}"
                   f"{e['numpy_arguments_per_step']:11.1f}")
-    write_results("contact_versus", dict(machine=info, other_commit=other, rounds=args.rounds, **result))
+    write_results(args.out, dict(machine=info, other_commit=other, rounds=args.rounds, **result))
 
 
 if __name__ == "__main__":

@@ -108,9 +108,9 @@ def _nodal_rotations(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incide
 WARP_MEMBERS = ("Re", "valence", "incidence", "R", "C0", "rows", "hr", "U", "ht", "Qt", "jds", "value", "lam",
                 "r0", "pushed", "x", "v", "sizes", "reals")
 WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in WARP_MEMBERS})
-WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset")
+WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows")
 WARP_REALS = ("h", "inverse_mass", "tolerance")
-N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET = range(len(WARP_SIZES))
+N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS = range(len(WARP_SIZES))
 H, INVERSE_MASS, TOLERANCE = range(len(WARP_REALS))
 
 
@@ -180,8 +180,8 @@ def _rotate(k: WARP, serial: ti.template()):
 @ti.kernel
 def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
     """The nodal rotations and Hr; H T and Q among the touched dofs (Qt); U = Q Hrᵀ there; and
-    kernel 2: W += h (Hr U + (H T)(H T)ᵀ / (c m))."""
-    n_active, nnz = k.sizes[N_ACTIVE], k.sizes[NNZ]
+    kernel 2: W += h (Hr U + (H T)(H T)ᵀ / (c m)), W (n_rows × n_rows) row-major in the flat W."""
+    n_active, nnz, n = k.sizes[N_ACTIVE], k.sizes[NNZ], k.sizes[N_ROWS]
     h, inverse_mass = k.reals[H], k.reals[INVERSE_MASS]
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
     _rotations_and_hr(k, o_node, nnz, serial)
@@ -210,10 +210,10 @@ def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
                 B += inverse_mass * k.ht[i] @ k.ht[j].transpose()
             ri, rj = 3 * k.jds[i], 3 * k.jds[j]
             for p, q in ti.static(ti.ndrange(3, 3)):
-                W[ri + p, rj + q] = W[ri + p, rj + q] + h * B[p, q]
+                W[(ri + p) * n + rj + q] = W[(ri + p) * n + rj + q] + h * B[p, q]
             if i != j:
                 for p, q in ti.static(ti.ndrange(3, 3)):
-                    W[rj + q, ri + p] = W[rj + q, ri + p] + h * B[p, q]
+                    W[(rj + q) * n + ri + p] = W[(rj + q) * n + ri + p] + h * B[p, q]
 
 
 @ti.kernel
@@ -412,7 +412,7 @@ class WarpedCompliance:
         self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
         self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
         self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
-        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0
+        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
 
@@ -465,9 +465,15 @@ class WarpedCompliance:
 
     def add_to(self, W: np.ndarray) -> None:
         """W (n_rows², the backend's float type) += h (H R) A₀⁻¹ (H R)ᵀ."""
-        if self.jds.n_active:
-            _assemble_replayed(self._pack(), W, self.serial)
-            self._ready = True
+        if not self.jds.n_active:
+            return
+        self._sizes[N_ROWS] = W.shape[0]
+        self.storage.put("sizes", self._sizes, ti.i32)
+        flat = _whole(W)
+        _assemble_replayed(self._pack(), flat, self.serial)
+        if not np.may_share_memory(flat, W):
+            W[...] = flat[:W.size].reshape(W.shape)
+        self._ready = True
 
     def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray, q_offset: int = 0,
                pos_offset: int = 0) -> None:
@@ -491,6 +497,19 @@ class WarpedCompliance:
             _rotate_replayed(pack, self.serial)
             self._ready = True
         _correct_replayed(pack, self.serial)
+
+
+def _whole(W: np.ndarray) -> np.ndarray:
+    """W as flat memory for a kernel: the whole 1-D buffer it is the start of, when it is one
+    (the pipeline's, kept between steps: the launch, keyed by the buffer's address and shape,
+    replays whatever W's size), else W flat (a copy if W is not C-contiguous)."""
+    base = W
+    while isinstance(base.base, np.ndarray):
+        base = base.base
+    if (W.flags.c_contiguous and base.ndim == 1 and base.flags.c_contiguous and base.dtype == W.dtype
+            and base.__array_interface__["data"][0] == W.__array_interface__["data"][0]):
+        return base
+    return np.ascontiguousarray(W).reshape(-1)
 
 
 class ExactCompliance:

@@ -59,7 +59,8 @@ from ..errors import TissueError
 from . import gauss_seidel, jacobi, newton
 from .cone import _error2_numpy, natural_map_residual, project_cone
 from .delassus import FactoredDelassus
-from .layouts import CSR, DELASSUS, DENSE, FACTORED, PROBLEM, HostArray, array
+from .layouts import CSR, DELASSUS, DENSE, FACTORED, PROBLEM
+from .storage import Storage
 
 METHODS = ("gauss_seidel", "jacobi", "newton", "auto")
 LAYOUTS = ("auto", "dense", "csr")
@@ -110,12 +111,17 @@ class FrictionalContactSolver:
     re-solves with a new free velocity between two simulation steps)."""
 
     def __init__(self, W, mu, method: str = "gauss_seidel", layout: str = "auto", omega=None, check: bool = True,
-                 anderson: int = ANDERSON_WINDOW, reduce: bool = False):
+                 anderson: int = ANDERSON_WINDOW, reduce: bool = False, storage: Storage | None = None):
         """anderson: Gauss-Seidel's Anderson window (0: plain sweeps; see the module docstring).
         reduce: Gauss-Seidel sweeps the contacts in play alone, W among them formed (see `_gauss_seidel`;
         method 'gauss_seidel' only).
         check=False skips the finiteness and positive-definiteness checks of W (O(n²) and a
-        3×3 eigenproblem per contact): for a caller that builds W itself (the contact stage)."""
+        3×3 eigenproblem per contact): for a caller that builds W itself (the contact stage).
+        storage: where the device arrays and their argpacks are kept (Storage(host=True)), for a
+        caller that makes a solver per problem (the contact stage, every step): a solve on kept
+        arrays sets no argument again (its launch replays, tissue.launch). The arrays are this
+        solver's until the next solver on the same storage is made. By default, a storage of
+        its own."""
         if method not in METHODS:
             raise TissueError(f"method: unknown value {method!r}; expected one of {', '.join(METHODS)}")
         if layout not in LAYOUTS:
@@ -166,6 +172,7 @@ class FrictionalContactSolver:
         # Jacobi's starting relaxation factor (given, or estimated from the spectrum of D^-1 W).
         self.omega = float(omega) if omega is not None else (
             self._initial_omega(D) if method == "jacobi" else 1.0)
+        self.storage = Storage(host=True) if storage is None else storage
         if n:
             self._upload(D)
 
@@ -188,41 +195,60 @@ class FrictionalContactSolver:
         return min(1.0, 1.0 / lam)
 
     def _upload(self, D):
+        """W, μ and the problem's arrays into the storage's kept arrays, and the argpacks over them
+        (kept with it: built again only after a growth)."""
         real = backend.current().real
-        npr = np.float64 if real == ti.f64 else np.float32
-
-        def nd(a, dtype=real):
-            a = np.ascontiguousarray(a, dtype=npr if dtype == real else np.int32)
-            if backend.current().arch == "cpu":
-                return a.view(HostArray)
-            arr = ti.ndarray(dtype=dtype, shape=a.shape)
-            arr.from_numpy(a)
-            return arr
-
-        self._npr = npr
-        m = 3 * self.n
-        hist, gram = gauss_seidel.history_shape(self.anderson, m)
-        self._P = PROBLEM(q=array((m,), real), mu=nd(self.mu), r=array((m,), real), u=array((m,), real),
-                          hist=array(hist, real), gram=array(gram, real), stats=array((3,), real))
-        self._q, self._r, self._u = self._P.q, self._P.r, self._P.u
+        self._npr = npr = np.float64 if real == ti.f64 else np.float32
+        st, n, m, window = self.storage, self.n, 3 * self.n, self.anderson
+        q = st.get("q", m, real)
+        hist, gram = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
+        P = dict(q=q, mu=st.put("mu", self.mu, real), r=st.get("r", m, real), u=st.get("u", m, real),
+                 hist=st.get("hist", hist[0], real, hist[1:]), gram=st.get("gram", gram[0], real, gram[1:]),
+                 stats=st.get("stats", 3, real), sizes=st.put("sizes", np.array([n, window, 0, 0]), ti.i32),
+                 reals=st.get("reals", 1, real))
+        self._P = st.pack("problem", PROBLEM, **P)
+        self._q, self._r, self._u = P["q"], P["r"], P["u"]
         # W in its layout (see tissue.contact.layouts), the factored layout's y and z (one element
-        # elsewhere) and its scale.
-        none = array((1,), real)
+        # elsewhere), its sizes and its scale.
+        none = st.get("none", 1, real)
         y = z = none
-        self._scale = 1.0
+        dims, scale = [0, 0], 1.0
         if self.layout == DENSE:
             W = self.W.toarray() if sp.issparse(self.W) else self.W
-            abc = (nd(W), none, none)
+            kept = st.get("W", m * m, real)
+            if not (st.host and W.flags.c_contiguous and W.dtype == kept.dtype      # written in place: dense_buffer
+                    and W.__array_interface__["data"][0] == kept.__array_interface__["data"][0]):
+                kept = st.put("W", np.ravel(W), real)
+            abc = (kept, none, none)
         elif self.layout == CSR:
             B = sp.bsr_matrix(sp.csr_matrix(self.W), blocksize=(3, 3))   # csr_matrix drops zeros
             B.sort_indices()
-            abc = (nd(B.indptr, ti.i32), nd(B.indices, ti.i32), nd(B.data))
+            abc = (st.put("indptr", B.indptr, ti.i32), st.put("indices", B.indices, ti.i32),
+                   st.put("blocks", B.data, real, (3, 3)))
         else:
             W = self.W
-            abc = (nd(W.packed(), ti.i32), nd(W.blocks), nd(W.Q))
-            y, z = (array((max(1, int(W.y_offset[-1])),), real) for _ in range(2))
-            self._scale = float(W.scale)
-        self._W = DELASSUS(a=abc[0], b=abc[1], c=abc[2], Wd=nd(D), y=y, z=z)
+            abc = (st.put("index", W.packed(), ti.i32), st.put("blocks", W.blocks, real, (3, 3)), st.put("Q", W.Q, real))
+            y, z = (st.get(name, max(1, int(W.y_offset[-1])), real) for name in ("y", "z"))
+            dims, scale = [len(W.blocks), len(W.y_offset) - 1], float(W.scale)
+        self._W = st.pack(f"delassus {self.layout}", DELASSUS, a=abc[0], b=abc[1], c=abc[2],
+                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, dims=st.put("dims", np.array(dims), ti.i32),
+                          scale=st.put("scale", np.array([scale]), real))
+
+    def _read(self, array) -> np.ndarray:
+        """The problem's first 3n entries of one of its arrays (r, u), in float64."""
+        m = 3 * self.n
+        if isinstance(array, np.ndarray):
+            return np.array(array[:m], dtype=np.float64)
+        return array.to_numpy()[:m].astype(np.float64)
+
+    def _write(self, array, values: np.ndarray) -> None:
+        """values (3n,) into the problem's array `array` (q, r, u)."""
+        if isinstance(array, np.ndarray):
+            array[:len(values)] = values
+        else:
+            padded = np.zeros(array.shape, self._npr)
+            padded[:len(values)] = values
+            array.from_numpy(padded)
 
     def solve(self, q, tol: float = 1e-6, max_iterations: int = 1000, r0=None):
         n = self.n
@@ -247,20 +273,20 @@ class FrictionalContactSolver:
 
         t0 = time.perf_counter()
         self._q_host = q
-        self._q.from_numpy(q.astype(self._npr))
+        self._write(self._q, q)
         # Start inside the cones: Jacobi's relaxation keeps r where it starts.
-        self._r.from_numpy(project_cone(r0.reshape(-1, 3), self.mu).ravel().astype(self._npr))
+        self._write(self._r, project_cone(r0.reshape(-1, 3), self.mu).ravel())
         tol_abs = tol * (1.0 + np.linalg.norm(q))
         run = {"gauss_seidel": self._gauss_seidel, "jacobi": self._jacobi, "newton": self._newton,
                "auto": self._auto}[self.method]
         iterations = run(max_iterations, tol_abs)
         backend.sync()
-        r = self._r.to_numpy().astype(np.float64)
+        r = self._read(self._r)
         elapsed = time.perf_counter() - t0
         if self.method != "jacobi" and self._npr == np.float64:
             # The kernel's own error and u of the returned r (the same formulas, in float64).
             residual = float(np.sqrt(self._last_error2)) / (1.0 + float(np.linalg.norm(q)))
-            self.u = self._u.to_numpy()
+            self.u = self._read(self._u)
         else:
             residual = natural_map_residual(self.W, q, self.mu, r)   # in float64, whatever the backend
             self.u = self.W @ r + q
@@ -270,8 +296,8 @@ class FrictionalContactSolver:
     def _sweeps(self, max_iterations, tol_abs, stall: int = 0) -> int:
         """Gauss-Seidel sweeps over the whole problem from the current r, in one launch (see
         gauss_seidel.run); sets self._last_error2 and self._stalled."""
-        its, self._last_error2, self._stalled = gauss_seidel.run(self.layout, self._W, self._P, self._scale,
-                                                                 max_iterations, tol_abs, stall)
+        its, self._last_error2, self._stalled = gauss_seidel.run(self.layout, self._W, self._P, max_iterations,
+                                                                 tol_abs, stall)
         return its
 
     def _gauss_seidel(self, max_iterations, tol_abs):
@@ -292,7 +318,7 @@ class FrictionalContactSolver:
         if not self.reduce:
             return self._sweeps(max_iterations, tol_abs)
         q = self._q_host
-        r = self._r.to_numpy().astype(np.float64)
+        r = self._read(self._r)
         its, play = 0, np.zeros(self.n, bool)
         while True:
             u = self.W @ r + q
@@ -301,22 +327,26 @@ class FrictionalContactSolver:
                 break
             new = ((r.reshape(-1, 3) != 0).any(axis=1) | (u[0::3] <= 0)) & ~play
             if not new.any() or np.count_nonzero(play | new) > REDUCE_FRACTION * self.n:
-                self._r.from_numpy(r.astype(self._npr))
+                self._write(self._r, r)
                 return its + self._sweeps(max_iterations - its, tol_abs)
             play |= new
             idx = np.flatnonzero(play)
             dofs = _dofs(idx)
             sub = FrictionalContactSolver(self._block(idx, idx), self.mu[idx], layout="dense", check=False,
-                                          anderson=self.anderson, reduce=False)
+                                          anderson=self.anderson, reduce=False, storage=self._in_play())
             r_play, info = sub.solve(q[dofs], tol_abs / (1.0 + np.linalg.norm(q[dofs])), max_iterations - its,
                                      r[dofs])
             its += info.iterations
             r = np.zeros(3 * self.n)
             r[dofs] = r_play
-        self._r.from_numpy(r.astype(self._npr))
-        self._u.from_numpy(u.astype(self._npr))
+        self._write(self._r, r)
+        self._write(self._u, u)
         self._last_error2 = error2
         return its
+
+    def _in_play(self) -> Storage:
+        """The storage of `reduce`'s solvers on the contacts in play (kept in this one's)."""
+        return self.storage.child("in play")
 
     def _auto(self, max_iterations, tol_abs):
         """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
@@ -335,17 +365,17 @@ class FrictionalContactSolver:
         """Semi-smooth Newton (tissue.contact.newton) from the current r, on the host; Gauss-Seidel
         sweeps (this solver's kernel, with Anderson) are its fallback when a line search fails."""
         def fallback(r, sweeps):
-            self._r.from_numpy(r.astype(self._npr))
+            self._write(self._r, r)
             done = self._sweeps(sweeps, tol_abs) if sweeps else 0
-            return self._r.to_numpy().astype(np.float64), done
+            return self._read(self._r), done
 
         # A factored W stays factored: Newton reads W among the closing contacts once per solve
         # (newton._Shared) and products through the factors.
         r, u, its, err2 = newton.solve(self.W, self._block, self._q_host, self.mu, self._D_host,
-                                       self._r.to_numpy().astype(np.float64), tol_abs, max_iterations, fallback,
+                                       self._read(self._r), tol_abs, max_iterations, fallback,
                                        lambda r, u: _error2_numpy(r, u, self.mu))
-        self._r.from_numpy(r.astype(self._npr))
-        self._u.from_numpy(u.astype(self._npr))
+        self._write(self._r, r)
+        self._write(self._u, u)
         self._last_error2 = err2
         return its
 
@@ -359,9 +389,17 @@ class FrictionalContactSolver:
         return self.W[np.ix_(r, c)]
 
     def _jacobi(self, max_iterations, tol_abs):
-        its, self.last_omega = jacobi.solve(self.layout, self._W, self._P, self._scale, self.omega, max_iterations,
-                                            tol_abs)
+        its, self.last_omega = jacobi.solve(self.layout, self._W, self._P, self.omega, max_iterations, tol_abs)
         return its
+
+
+def dense_buffer(storage: Storage, m: int) -> np.ndarray:
+    """An (m, m) float64 array for W: on the CPU in float64, the memory where a solver on `storage`
+    keeps a dense W, so that what the caller writes there is read in place (no copy); elsewhere a
+    new array."""
+    if storage.host and backend.current().real == ti.f64:
+        return np.asarray(storage.get("W", m * m, ti.f64)[:m * m]).reshape(m, m)
+    return np.empty((m, m))
 
 
 def solve_frictional_contact(W, q, mu, tol: float = 1e-6, max_iterations: int = 1000, r0=None,

@@ -24,49 +24,51 @@ strongly coupled soft-body problems it cuts the sweeps to a tolerance 2-4x (benc
 import taichi as ti
 
 from .cone import _block, _contact_error2, _local_solve, _project, _vec
-from .layouts import DELASSUS, FACTORED, PROBLEM, _refresh, _residual, _spread, _wr
+from ..launch import replayed
+from .layouts import CONTACTS, DELASSUS, FACTORED, MAX_SWEEPS, PROBLEM, STALL, TOL2, WINDOW, _refresh, _residual, _spread, _wr
 
 ANDERSON_RESTARTS = 10    # rejecting a combination that starts worse than the sweep before, at most this often
 REVISIT_EVERY = 8         # every this many sweeps, one that visits the contacts apart too
 
 
 def history_shape(window: int, rows: int) -> tuple[tuple, tuple]:
-    """The shapes of PROBLEM's hist and gram for Anderson's window (0: plain sweeps, one element)."""
+    """The shapes of PROBLEM's hist and gram for Anderson's window and room for `rows` rows (0:
+    plain sweeps, one element)."""
     return ((2 * window + 3, rows), (window, 2 * window + 2)) if window else ((1, 1), (1, 1))
 
 
 @ti.func
-def _save(r: ti.template(), hist: ti.template(), row, on):
+def _save(r: ti.template(), hist: ti.template(), row, on, n3):
     if on > 0:
-        for l in range(r.shape[0]):
+        for l in range(n3):
             hist[row, l] = r[l]
 
 
 @ti.func
-def _accelerate(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), window, est, state):
+def _accelerate(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), n, window, est, state):
     """After a sweep whose start had the running error `est`: state = (Anderson steps since the
     last restart, restarts left, the previous start's error). A combined start worse than the
     previous one is rejected: back to the previous sweep's result (what plain Gauss-Seidel had),
     history cleared; after ANDERSON_RESTARTS rejections, plain sweeps only."""
     since, on, last = ti.cast(state[0], ti.i32), ti.cast(state[1], ti.i32), state[2]
     if since > 1 and est > last:
-        for l in range(r.shape[0]):
+        for l in range(3 * n):
             r[l] = hist[2 * window, l]
         since, on = 0, on - 1
     else:
         last = est
-        _anderson(r, hist, gram, mu, since, window)
+        _anderson(r, hist, gram, mu, n, since, window)
         since += 1
     return ti.Vector([since, on, last])
 
 
 @ti.func
-def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), k, m):
+def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), n, k, m):
     """Anderson step after sweep k (k = 0: the first since a restart). r holds g = G(x), the
     sweep's result, and hist[2m + 2] the x it started from. hist rows 0..m-1 hold ΔG, rows m..2m-1
     ΔF (ring buffers, F = G(x) - x), rows 2m, 2m + 1 the previous g and f; gram[i, j] = ΔF_i·ΔF_j.
-    r <- P_K(g - ΔG γ) with γ = argmin |f - ΔF γ| (normal equations, Cholesky)."""
-    n3 = r.shape[0]
+    r <- P_K(g - ΔG γ) with γ = argmin |f - ΔF γ| (normal equations, Cholesky). n: contacts."""
+    n3 = 3 * n
     slot = (k - 1) % m
     xr, gp, fp = 2 * m + 2, 2 * m, 2 * m + 1
     for l in range(n3):
@@ -116,7 +118,7 @@ def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti
                 for t in range(i + 1, p):
                     e -= gram[t, c + i] * gram[t, y]
                 gram[i, y] = e / gram[i, c + i]
-            for i in range(mu.shape[0]):
+            for i in range(n):
                 x = _vec(r, i)
                 for j in range(p):
                     for a in ti.static(range(3)):
@@ -132,29 +134,31 @@ def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti
 # the start and the end); between two, u holds each contact's value when it was last solved.
 # ----------------------------------------------------------------------------------------------
 
-def run(layout: int, W, P, scale: float, max_iterations: int, tol_abs: float, stall: int = 0):
-    """Sweeps from P.r (0 sweeps: u and the residual of r alone), in one launch; with `stall`,
-    stopped early when that many sweeps did not halve the residual or, at their rate, would not
-    reach tol_abs within max_iterations. Returns (sweeps, error², stalled)."""
-    _sweeps(layout, W, P, scale, max_iterations, tol_abs ** 2, stall)
+def run(layout: int, W, P, max_iterations: int, tol_abs: float, stall: int = 0):
+    """Sweeps from P.r (0 sweeps: u and the residual of r alone), in one launch (replayed: the
+    sweep cap, the stall phase and the tolerance are written into P.sizes and P.reals); with
+    `stall`, stopped early when that many sweeps did not halve the residual or, at their rate,
+    would not reach tol_abs within max_iterations. Returns (sweeps, error², stalled)."""
+    P.sizes[MAX_SWEEPS], P.sizes[STALL], P.reals[TOL2] = max_iterations, stall, tol_abs ** 2
+    _sweeps_replayed(layout, W, P)
     stats = P.stats.to_numpy()
     return int(stats[0]), float(stats[1]), bool(stats[2])
 
 
 @ti.kernel
-def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM, scale: float, max_it: ti.i32, tol2: float, stall: ti.i32):
+def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     """Sweeps until the residual is ≤ tol2 (squared) or max_it sweeps; with stall > 0 also when
     `stall` sweeps did not halve the residual, or would not reach tol2 within max_it at the rate
     of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps."""
-    window = (P.hist.shape[0] - 3) // 2 if P.hist.shape[0] > 1 else 0         # (see history_shape)
+    n, window = P.sizes[CONTACTS], P.sizes[WINDOW]
+    max_it, stall, tol2 = P.sizes[MAX_SWEEPS], P.sizes[STALL], P.reals[TOL2]
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
-    n = P.mu.shape[0]
-    _refresh(layout, W, P.r, scale)
+    _refresh(layout, W, P.r, n)
     while True:
         at_phase = stall > 0 and it % stall == 0
         if it == 0 or est <= tol2 or it >= max_it or at_phase:
-            err2 = _residual(layout, W, P, scale)
+            err2 = _residual(layout, W, P, n)
             if err2 <= tol2 or it >= max_it:
                 break
             if at_phase:
@@ -165,7 +169,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM, scale: float, max_it
                     stalled = 1
                     break
                 phase_err2 = err2
-        _save(P.r, P.hist, 2 * window + 2, on)
+        _save(P.r, P.hist, 2 * window + 2, on, 3 * n)
         est = 0.0
         for i in range(n):
             # Contact i solved with the others fixed; est gathers the error the old r_i had (a
@@ -178,7 +182,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM, scale: float, max_it
             if ri.norm_sqr() == 0.0 and P.u[3 * i] > 0.0 and it % REVISIT_EVERY != REVISIT_EVERY - 1:
                 continue
             A = _block(W.Wd, i)
-            ui = _vec(P.q, i) + _wr(layout, W, P.r, i)
+            ui = _vec(P.q, i) + _wr(layout, W, P.r, n, i)
             rnew = _local_solve(A, ui - A @ ri, P.mu[i])
             for k in ti.static(range(3)):
                 P.r[3 * i + k] = rnew[k]
@@ -187,13 +191,15 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM, scale: float, max_it
             if ti.static(layout == FACTORED):
                 dr = rnew - ri
                 if dr.dot(dr) > 0.0:
-                    _spread(W, n, i, dr, scale)
+                    _spread(W, n, i, dr)
         it += 1
         if on > 0:
-            acc = _accelerate(P.r, P.hist, P.gram, P.mu, window, est, ti.Vector([since, on, last]))
+            acc = _accelerate(P.r, P.hist, P.gram, P.mu, n, window, est, ti.Vector([since, on, last]))
             since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
-            _refresh(layout, W, P.r, scale)
+            _refresh(layout, W, P.r, n)
     P.stats[0] = it
     P.stats[1] = err2
     P.stats[2] = stalled
 
+
+_sweeps_replayed = replayed(_sweeps)

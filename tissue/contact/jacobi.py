@@ -13,20 +13,20 @@ import taichi as ti
 
 from .. import backend
 from .cone import _block, _contact_error2, _local_solve, _vec
-from .layouts import DELASSUS, PROBLEM, _refresh, _wr, array
+from .layouts import CONTACTS, DELASSUS, PROBLEM, _refresh, _wr, array
 
 JACOBI_CHECK_EVERY = 10   # the residual is read back (a device sync) every this many iterations
 JACOBI_STALL_CHECKS = 20  # ... and omega halved after this many checks without a new best residual
 
 
-def solve(layout: int, W, P, scale: float, omega: float, max_iterations: int, tol_abs: float):
+def solve(layout: int, W, P, omega: float, max_iterations: int, tol_abs: float):
     """Jacobi iterations from P.r until the natural-map error is at most tol_abs or
     max_iterations; P.r ends at the best iterate seen. Returns (iterations, the last omega)."""
     best = np.inf
     r_best = array(P.r.shape, backend.current().real)
     it = stalled = 0
     while True:
-        _matvec(layout, W, P, scale)
+        _matvec(layout, W, P)
         if it % JACOBI_CHECK_EVERY == 0 or it >= max_iterations:
             _error2_kernel(P)
             err = float(np.sqrt(P.stats.to_numpy()[1]))
@@ -41,7 +41,7 @@ def solve(layout: int, W, P, scale: float, omega: float, max_iterations: int, to
             if (err > 2.0 * best or stalled >= JACOBI_STALL_CHECKS) and omega > 1e-6:
                 omega, stalled = 0.5 * omega, 0
                 P.r.copy_from(r_best)
-                _matvec(layout, W, P, scale)
+                _matvec(layout, W, P)
         _jacobi_step(W, P, omega)
         it += 1
     if err > best:                              # hand back the best iterate seen
@@ -50,19 +50,20 @@ def solve(layout: int, W, P, scale: float, omega: float, max_iterations: int, to
 
 
 @ti.kernel
-def _matvec(layout: ti.template(), W: DELASSUS, P: PROBLEM, scale: float):
+def _matvec(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     """u = W r + q (FACTORED: y refreshed on one thread first, then every contact in parallel)."""
+    n = P.sizes[CONTACTS]
     for _ in range(1):
-        _refresh(layout, W, P.r, scale)
-    for i in range(P.q.shape[0] // 3):
-        ui = _vec(P.q, i) + _wr(layout, W, P.r, i)
+        _refresh(layout, W, P.r, n)
+    for i in range(n):
+        ui = _vec(P.q, i) + _wr(layout, W, P.r, n, i)
         for k in ti.static(range(3)):
             P.u[3 * i + k] = ui[k]
 
 
 @ti.kernel
 def _jacobi_step(W: DELASSUS, P: PROBLEM, omega: float):
-    for i in range(P.mu.shape[0]):
+    for i in range(P.sizes[CONTACTS]):
         A = _block(W.Wd, i)
         ri = _vec(P.r, i)
         d = _local_solve(A, _vec(P.u, i) - A @ ri, P.mu[i]) - ri
@@ -73,5 +74,5 @@ def _jacobi_step(W: DELASSUS, P: PROBLEM, omega: float):
 @ti.kernel
 def _error2_kernel(P: PROBLEM):
     P.stats[1] = 0.0
-    for i in range(P.mu.shape[0]):
+    for i in range(P.sizes[CONTACTS]):
         P.stats[1] += _contact_error2(_vec(P.r, i), _vec(P.u, i), P.mu[i])

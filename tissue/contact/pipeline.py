@@ -48,8 +48,9 @@ from .compliance import ExactCompliance, WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows, offsets
 from .detection import Contacts, Detector
 from .delassus import FactoredDelassus
-from .frictional_contact import ContactInfo, FrictionalContactSolver
+from .frictional_contact import ContactInfo, FrictionalContactSolver, dense_buffer
 from .obstacles import RigidObstacle
+from .storage import Storage
 
 # Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`; method 'gauss_seidel'
 # only: 'auto' sweeps the whole problem, which cost less on liver_press's problems, side by side)
@@ -197,10 +198,10 @@ class ContactStage:
             body.solver.model.subscribe(listener)
         self._pose_cache = {}
         self._buffers, self._flip = [{}, {}], 0
-        self._scaled = np.empty(0)
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
         self.compliance = [kind(b.solver) for b in self.bodies] + self.jaws
-        self._storages = [self.detector.storage]
+        self._lcp = Storage(host=True)          # the frictional problem's arrays, kept between steps
+        self._storages = [self.detector.storage, self._lcp]
         self._storages += [c.storage for c in self.compliance if isinstance(c, WarpedCompliance)]
         self.time = 0.0
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
@@ -476,10 +477,8 @@ class ContactStage:
                 for j in (1, 2):
                     diagonal[3 * t + j] = diagonal[3 * t]
                 scale = float(np.mean(diagonal))
-                # In a buffer kept between steps.
-                if self._scaled.size < m * m:
-                    self._scaled = np.empty(max(m * m, 2 * self._scaled.size))
-                scaled = self._scaled[:m * m].reshape(m, m)
+                # Where the solver keeps W: it reads it there without a copy.
+                scaled = dense_buffer(self._lcp, m)
                 np.multiply(Wc, 1.0 / scale, out=scaled)
                 for j in (1, 2):
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
@@ -490,7 +489,8 @@ class ContactStage:
                 pos = np.minimum(pos, len(self._warm_keys) - 1)
                 hit = self._warm_keys[pos] == keys
                 warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
-            solver = FrictionalContactSolver(scaled, mu, s.method, check=False, reduce=self._last_sweeps > REDUCE_ABOVE)
+            solver = FrictionalContactSolver(scaled, mu, s.method, check=False, reduce=self._last_sweeps > REDUCE_ABOVE,
+                                             storage=self._lcp)
             r, info = solver.solve(qc, s.tolerance, s.max_iterations, r0=scale * warm.ravel())
             self._last_sweeps = info.iterations
             if not np.all(np.isfinite(r)):      # (W is not checked on the way in: it is ours)
