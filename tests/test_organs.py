@@ -318,3 +318,22 @@ def test_read_surface_refuses_unknown_format(tmp_path):
     path.write_text("x")
     with pytest.raises(TissueError, match="unknown surface format"):
         read_surface(path)
+
+
+def test_the_mesher_loads_open3d_core_alone_and_the_package_adopts_it():
+    """In a fresh process: meshing loads open3d's compiled core without the package (whose
+    visualisation imports dash), and a later `import open3d` reuses that core, not a second copy."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from tissue.mesh.closed_surface import SurfaceQueries, open3d_core\n"
+            "import numpy as np\n"
+            "q = SurfaceQueries(np.array([[0,0,0],[1,0,0],[0,1,0],[0,0,1]], float), np.array([[0,2,1],[0,1,3],[0,3,2],[1,2,3]]))\n"
+            "assert abs(q.signed_distance(np.array([[2.0, 0, 0]]))[0] - 1.0) < 1e-6\n"
+            "assert 'open3d' not in sys.modules and 'dash' not in sys.modules\n"
+            "import open3d\n"
+            "assert open3d.pybind is open3d_core() and open3d.t.geometry.RaycastingScene is open3d_core().t.geometry.RaycastingScene\n")
+    from pathlib import Path
+
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    assert done.returncode == 0, done.stderr[-2000:]
