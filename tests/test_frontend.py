@@ -94,9 +94,12 @@ def _matrix_kernel():
             N = ti.Matrix([[A[0, 0], A[0, 1], A[0, 2]], [A[1, 0], A[1, 1], A[1, 2]]])     # 2×3
             P = N.transpose() @ (N @ A.transpose())                                      # 3×2 @ 2×3
             K = ti.Matrix([[1, 2, 3], [4, 5, 6], [7, 8, i]]) @ ti.Vector([i, 2, 3])      # integers
-            out[i] = C + v.outer_product(v) @ B + a[i] @ a[i].transpose() + P + (v @ A).outer_product(v)
+            T = ti.Matrix([[A[0, 0], A[0, 1]], [A[1, 0], A[1, 1]]])                       # 2×2
+            Z = ti.Matrix.zero(float, 3, 3) + ti.Matrix.identity(float, 3) + ti.Vector.zero(float, 3).outer_product(v)
+            out[i] = C + v.outer_product(v) @ B + a[i] @ a[i].transpose() + P + (v @ A).outer_product(v) \
+                + A.inverse() + a[i].inverse().transpose() @ Z
             s[i] = v.dot(v) + A.norm() + B.norm_sqr() + C.sum() + v.norm() + v.sum() + v.norm(1e-3) \
-                + N.sum() + K.sum() + (K * 2).dot(K)
+                + N.sum() + K.sum() + (K * 2).dot(K) + A.determinant() + T.determinant() + T.inverse().sum()
     return matrix_ops_kernel
 
 

@@ -23,7 +23,8 @@ messages do not change. `tissue.backend` installs it when imported, before any o
 defines a kernel.
 
 The small-matrix operations (`A @ B`, `A @ v`, `.transpose()`, `.outer_product()`, `.sum()`,
-`.dot()`, `.norm_sqr()`, `.norm()`) are Taichi "pyfuncs": Python with static loops, transformed
+`.dot()`, `.norm_sqr()`, `.norm()`, `.determinant()`, `.inverse()`, `ti.Matrix.identity`, `.zero`)
+are Taichi "pyfuncs": Python with static loops, transformed
 again at every use, one AST node at a time: a 3×3 product unrolls 27 statements, and the step
 kernel made 30 of them (16,000 of its 38,000 nodes). `install()` builds them instead directly from
 the operands' entries, the same scalar arithmetic in the same order as Taichi's own (its `0 · a₀₀
@@ -50,7 +51,8 @@ _original_sourcelines = kernel_impl.getsourcelines
 _original_sourcefile = kernel_impl.getsourcefile
 _original_inside_class = kernel_impl._inside_class
 _original_ops = {name: getattr(matrix_ops, name)
-                 for name in ("matmul", "transpose", "outer_product", "sum", "dot", "norm_sqr", "norm")}
+                 for name in ("matmul", "transpose", "outer_product", "sum", "dot", "norm_sqr", "norm", "determinant",
+                              "inverse", "_identity_matrix", "_filled_matrix", "_filled_vector")}
 _pos_info: dict[tuple, str] = {}
 
 
@@ -168,6 +170,30 @@ def _flat(x) -> list:
     return entries if len(x.get_shape()) == 1 else [v for row in entries for v in row]
 
 
+def _square(a) -> bool:
+    return _tensor(a, 2) and a.get_shape() in ((2, 2), (3, 3))
+
+
+def _determinant_of(x):
+    """Taichi's formula (matrix_ops.determinant) on the entries x of a 2×2 or 3×3 matrix."""
+    if len(x) == 2:
+        return x[0][0] * x[1][1] - x[0][1] * x[1][0]
+    return (x[0][0] * (x[1][1] * x[2][2] - x[2][1] * x[1][2])
+            - x[1][0] * (x[0][1] * x[2][2] - x[2][1] * x[0][2])
+            + x[2][0] * (x[0][1] * x[1][2] - x[1][1] * x[0][2]))
+
+
+def _inverse(a):
+    """Taichi's (matrix_ops.inverse): 1 / det times the transposed cofactors, as it writes them."""
+    x = _entries(a)
+    inverse_determinant = impl.expr_init(1.0 / _determinant_of(x))
+    if len(x) == 2:
+        return inverse_determinant * make_matrix([[x[1][1], -x[0][1]], [-x[1][0], x[0][0]]])
+    e = lambda i, j: x[i % 3][j % 3]       # noqa: E731  (Taichi's E)
+    return inverse_determinant * make_matrix([[e(i + 1, j + 1) * e(i + 2, j + 2) - e(i + 2, j + 1) * e(i + 1, j + 2)
+                                               for i in range(3)] for j in range(3)])
+
+
 _DIRECT = {
     "matmul": (_matmul, _matmul_applies),
     "transpose": (lambda a: make_matrix([list(column) for column in zip(*_entries(a))]), lambda a: _tensor(a, 2)),
@@ -178,6 +204,14 @@ _DIRECT = {
             lambda u, v: _tensor(u, 1) and _tensor(v, 1) and u.get_shape() == v.get_shape()),
     "norm_sqr": (_norm_sqr, lambda a: _tensor(a, 1) or _tensor(a, 2)),
     "norm": (lambda a, eps=0.0: ops.sqrt(_norm_sqr(a) + eps), lambda a, eps=0.0: _tensor(a, 1) or _tensor(a, 2)),
+    "determinant": (lambda a: _determinant_of(_entries(a)), _square),
+    "inverse": (_inverse, _square),
+    # The constructors take compile-time arguments only: Taichi's own comprehension, without its transform.
+    "_identity_matrix": (lambda n, dtype: make_matrix([[i == j for j in range(n)] for i in range(n)], dtype),
+                         lambda n, dtype: True),
+    "_filled_matrix": (lambda n, m, dtype, val: make_matrix([[val for _ in range(m)] for _ in range(n)], dtype),
+                       lambda n, m, dtype, val: True),
+    "_filled_vector": (lambda n, dtype, val: make_matrix([val for _ in range(n)], dtype), lambda n, dtype, val: True),
 }
 
 
