@@ -337,3 +337,25 @@ def test_the_mesher_loads_open3d_core_alone_and_the_package_adopts_it():
 
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_stomach_implicit_is_exact_near_the_surface_and_keeps_its_sign_beyond():
+    """The stomach's implicit skips the 12-neighbour sweep query far outside: against the plain
+    formula (every point queried), values agree exactly wherever the plain value is within
+    organs._SIGN_ONLY of the surface or inside, and elsewhere both are beyond _SIGN_ONLY (what
+    marching cubes reads: signs, and values within two cells of the surface)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    p = rng.uniform((-0.09, -0.06, -0.21), (0.15, 0.09, 0.04), (60_000, 3))
+    curve, s = organs._sample_curve(organs._STOMACH_CENTRELINE, 600)
+    radius = np.interp(s / s[-1], organs._STOMACH_RADIUS[:, 0], organs._STOMACH_RADIUS[:, 1])
+    flatten, centre_y = np.array([1.0, 1.25, 1.0]), curve[:, 1].mean()
+    dist, idx = cKDTree((curve - [0.0, centre_y, 0.0]) * flatten).query((p - [0.0, centre_y, 0.0]) * flatten, k=12)
+    dome = organs._ellipsoid(p, organs._FUNDUS_CENTRE, organs._FUNDUS_RADII)
+    plain = -organs._smooth_max(-(dist - radius[idx]).min(axis=1), -dome, 0.015)
+    value = organs._stomach_implicit(p)
+    near = plain <= organs._SIGN_ONLY
+    assert 0.1 < near.mean() < 0.9 and (plain < 0).any()
+    assert np.array_equal(value[near], plain[near])
+    assert (value[~near] > organs._SIGN_ONLY).all()
