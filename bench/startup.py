@@ -20,11 +20,10 @@ them back: `BodyModel.remove_elements` / `add_elements`, with the solver's assem
 following), its median time over repetitions and the kernels it compiled (none expected).
 Writes bench/results/startup.json.
 
---versus COMMIT: the *again* run of each scene (caches filled by the same command: what every
-process pays, front end and machine code) by this checkout and by COMMIT (a temporary git worktree),
-alternately for --rounds rounds, each with caches of its own; medians of the wall and of the run's
-CPU seconds (user + system, all threads: what a loaded machine inflates least). Writes
-bench/results/startup_versus.json.
+--versus COMMIT: each scene's cold, warm and again runs, as above, by this checkout and by COMMIT
+(a temporary git worktree), alternately for --rounds rounds, each run with caches of its own;
+medians of the wall, of the run's CPU seconds (user + system, all threads: what a loaded machine
+inflates least) and of its split. Writes bench/results/startup_versus.json.
 """
 
 from __future__ import annotations
@@ -66,17 +65,17 @@ def run(command: tuple[str, ...], caches: Path, steps: int, arch: str, checkout:
     return {k: round(v, 3) for k, v in split.items()}
 
 
-def measure(scene: str, steps: int, arch: str) -> list[dict]:
+def measure(scene: str, steps: int, arch: str, checkout: Path = ROOT) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
-        rows.append(dict(scene=scene, caches="cold", **run((scene,), Path(tmp), steps, arch)))
+        rows.append(dict(scene=scene, caches="cold", **run((scene,), Path(tmp), steps, arch, checkout)))
     with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
         fillers = [f for f in FILLERS if f != (scene,)]
         for filler in fillers:
-            run(filler, Path(tmp), steps, arch)
+            run(filler, Path(tmp), steps, arch, checkout)
         rows.append(dict(scene=scene, caches="warm", filled_by=[" ".join(f) for f in fillers],
-                         **run((scene,), Path(tmp), steps, arch)))
-        rows.append(dict(scene=scene, caches="again", **run((scene,), Path(tmp), steps, arch)))
+                         **run((scene,), Path(tmp), steps, arch, checkout)))
+        rows.append(dict(scene=scene, caches="again", **run((scene,), Path(tmp), steps, arch, checkout)))
     return rows
 
 
@@ -113,38 +112,29 @@ def edit_timing(repeats: int = 50) -> dict:
 
 
 def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, info: dict) -> None:
-    """The `again` run of each scene by this checkout and by `other`, alternately (see the docstring)."""
-    import tempfile
-
+    """Each scene's cold, warm and again runs by this checkout and by `other`, alternately (see the docstring)."""
     import numpy as np
 
-    with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
-        filled = set()
+    def measure_all(checkout: Path) -> dict:
+        return {scene: {row["caches"]: row for row in measure(scene, steps, arch, checkout)} for scene in scenes}
 
-        def measure(checkout: Path) -> dict:
-            rows = {}
-            for scene in scenes:
-                caches = Path(tmp) / f"{'this' if checkout == ROOT else 'other'}-{scene}"
-                if caches not in filled:
-                    run((scene,), caches, steps, arch, checkout)
-                    filled.add(caches)
-                rows[scene] = run((scene,), caches, steps, arch, checkout)
-            return rows
+    def describe(rows: dict) -> str:
+        return "  ".join(f"{s}: " + "/".join(f"{r['wall_s']:.1f}" for r in runs.values()) for s, runs in rows.items())
 
-        other, runs = alternate_with_commit(
-            other, rounds, measure,
-            lambda rows: "  ".join(f"{s}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU" for s, r in rows.items()),
-            "tissue-startup-versus-")
-    results = {}
-    for scene in scenes:
-        results[scene] = {name: {key: round(float(np.median([r[scene][key] for r in runs[name]])), 3)
-                                 for key in ("wall_s", "cpu_s", "compile_s", "machine_code_s", "kernels")}
-                          for name in runs}
-        this, that = results[scene]["this"], results[scene]["other"]
-        print(f"{scene:<12} again: this {this['wall_s']:5.1f} s wall, {this['cpu_s']:5.1f} s CPU, {this['kernels']:.0f} kernels; "
-              f"{other} {that['wall_s']:5.1f} s wall, {that['cpu_s']:5.1f} s CPU, {that['kernels']:.0f} kernels")
+    load = os.getloadavg()
+    other, runs = alternate_with_commit(other, rounds, measure_all, describe, "tissue-startup-versus-")
+    keys = ("wall_s", "cpu_s", "mesh_s", "compile_s", "machine_code_s", "kernels", "simulate_s", "other_s")
+    results = {scene: {caches: {name: {key: round(float(np.median([r[scene][caches][key] for r in runs[name]])), 3)
+                                       for key in keys} for name in runs}
+                       for caches in ("cold", "warm", "again")} for scene in scenes}
+    print(f"{'scene':<12} {'caches':<6} {'wall s: this':>12} {other:>9} {'CPU s: this':>12} {other:>9}")
+    for scene, by_caches in results.items():
+        for caches, r in by_caches.items():
+            print(f"{scene:<12} {caches:<6} {r['this']['wall_s']:12.1f} {r['other']['wall_s']:9.1f} "
+                  f"{r['this']['cpu_s']:12.1f} {r['other']['cpu_s']:9.1f}")
     write_results("startup_versus", dict(machine=info, other=other, rounds=rounds, steps=steps,
-                                         load_average=[round(x, 2) for x in os.getloadavg()],
+                                         load_average_before_after=[[round(x, 2) for x in load],
+                                                                    [round(x, 2) for x in os.getloadavg()]],
                                          scenes=results, runs=runs))
 
 

@@ -9,10 +9,12 @@ Taichi compiles kernels per object, and compiling is what costs here.
 
 import numpy as np
 import pytest
+import taichi as ti
 from scipy.spatial.transform import Rotation
 
 from tissue.errors import TissueError
 from tissue.fem import CorotationalFEM, Material
+from tissue.fem.corotational import symmetric_eigen
 from tissue.mesh import TetMesh, box
 from tissue.solver import reference as ref
 
@@ -234,9 +236,9 @@ def test_fem_rejects_unknown_accumulation(backend):
 def test_polar_rotation_of_inverted_elements_is_the_closest_proper_rotation(backend):
     """Every element mirrored (z -> -z after a random distortion): "polar" must return a proper
     rotation (det +1), the one of the SVD with the smallest singular direction flipped (Irving et
-    al. 2004; scipy SVD in reference.element_rotations). The kernel finds that direction by 100
-    inverse iterations: measured 1.6e-8 at worst on this mesh, where two singular values of one
-    element nearly coincide; 1e-6 leaves room for that."""
+    al. 2004; scipy SVD in reference.element_rotations). The kernel finds that direction by Jacobi
+    rotations (symmetric_eigen); where two singular values of one element nearly coincide the
+    rotation is less well conditioned: 1e-6 leaves room for that."""
     mesh = box(size=(1, 1, 1), cells=(2, 2, 2))
     fem = CorotationalFEM(mesh, Material(), rotation="polar")
     x = mesh.points + 0.3 * np.random.default_rng(3).standard_normal(mesh.points.shape)
@@ -244,3 +246,33 @@ def test_polar_rotation_of_inverted_elements_is_the_closest_proper_rotation(back
     R = fem.rotations_numpy(x)
     assert np.allclose(np.linalg.det(R), 1.0, atol=1e-12)
     assert np.abs(R - ref.element_rotations(mesh, x, "polar")).max() <= 1e-6
+
+
+@ti.kernel
+def _eigen_kernel(a: ti.types.ndarray(), values: ti.types.ndarray(), vectors: ti.types.ndarray()):
+    for i in range(a.shape[0]):
+        values[i], vectors[i] = symmetric_eigen(a[i])
+
+
+def test_symmetric_eigen_matches_numpy(backend):
+    """The Jacobi eigensolver of the polar rotation's inverted case, the compression limit and the
+    energy, against numpy's eigh: random symmetric matrices of mixed sign, ones with a double or
+    triple eigenvalue, nearly coincident ones and already diagonal ones. Eigenvalues to 1e-13 of
+    the matrix's norm; V orthonormal and A V = V Λ to 1e-13 (eigenvectors of a repeated eigenvalue
+    are any basis of its space, so they are checked through A V = V Λ, not against numpy's)."""
+    rng = np.random.default_rng(11)
+    Q = Rotation.random(40, random_state=12).as_matrix()
+    spectra = np.concatenate([rng.normal(size=(10, 3)), np.repeat(rng.normal(size=(10, 1)), 3, axis=1),
+                              np.stack([np.full(10, 2.0), np.full(10, 2.0), rng.normal(size=10)], axis=1),
+                              1.0 + np.stack([np.zeros(10), np.full(10, 1e-9), rng.normal(size=10)], axis=1)])
+    A = np.einsum("eij,ej,ekj->eik", Q, spectra, Q)
+    A = np.concatenate([A, np.stack([np.diag(d) for d in rng.normal(size=(4, 3))])])
+    mat3, vec3 = ti.types.matrix(3, 3, ti.f64), ti.types.vector(3, ti.f64)
+    a, values, vectors = ti.ndarray(mat3, len(A)), ti.ndarray(vec3, len(A)), ti.ndarray(mat3, len(A))
+    a.from_numpy(A)
+    _eigen_kernel(a, values, vectors)
+    lam, V = values.to_numpy(), vectors.to_numpy()
+    scale = np.linalg.norm(A, axis=(1, 2))[:, None]
+    assert np.abs(np.sort(lam, axis=1) - np.linalg.eigvalsh(A)).max() <= 1e-13 * scale.max()
+    assert np.abs(np.einsum("eji,ejk->eik", V, V) - np.eye(3)).max() <= 1e-13
+    assert (np.abs(A @ V - V * lam[:, None, :]) / scale[:, None]).max() <= 1e-13

@@ -1,4 +1,7 @@
-"""tissue.frontend's memoised source positions and source reads give Taichi exactly what it computed itself."""
+"""tissue.frontend's memoised source positions and source reads give Taichi exactly what it computed itself,
+and its directly built matrix operations the bits Taichi's own compute."""
+
+import functools
 
 import numpy as np
 import taichi as ti
@@ -76,3 +79,61 @@ def test_memoised_fill_equals_textwrap():
 
     for line in ("\tif a:\t# tab", "    x = 1", ""):
         assert frontend._fill(line, tabsize=4, width=9999) == textwrap.fill(line, tabsize=4, width=9999)
+
+
+def _matrix_kernel():
+    """A fresh kernel object (compiled at its first call) using every directly built operation,
+    on square and non-square shapes, floats and integers, and one Taichi keeps (vector @ matrix)."""
+    @ti.kernel
+    def matrix_ops_kernel(a: ti.types.ndarray(), out: ti.types.ndarray(), s: ti.types.ndarray()):
+        for i in range(a.shape[0]):
+            A = a[i]
+            B = A @ A.transpose() @ A
+            v = B @ ti.Vector([1.0, 2.0, 3.0])
+            C = (B @ A) @ (A @ B) - A @ B @ A
+            N = ti.Matrix([[A[0, 0], A[0, 1], A[0, 2]], [A[1, 0], A[1, 1], A[1, 2]]])     # 2×3
+            P = N.transpose() @ (N @ A.transpose())                                      # 3×2 @ 2×3
+            K = ti.Matrix([[1, 2, 3], [4, 5, 6], [7, 8, i]]) @ ti.Vector([i, 2, 3])      # integers
+            T = ti.Matrix([[A[0, 0], A[0, 1]], [A[1, 0], A[1, 1]]])                       # 2×2
+            Z = ti.Matrix.zero(float, 3, 3) + ti.Matrix.identity(float, 3) + ti.Vector.zero(float, 3).outer_product(v)
+            out[i] = C + v.outer_product(v) @ B + a[i] @ a[i].transpose() + P + (v @ A).outer_product(v) \
+                + A.inverse() + a[i].inverse().transpose() @ Z
+            s[i] = v.dot(v) + A.norm() + B.norm_sqr() + C.sum() + v.norm() + v.sum() + v.norm(1e-3) \
+                + N.sum() + K.sum() + (K * 2).dot(K) + A.determinant() + T.determinant() + T.inverse().sum()
+    return matrix_ops_kernel
+
+
+def _counted(calls, name, operation, *args, **kwargs):
+    calls.append(name)
+    return operation(*args, **kwargs)
+
+
+def test_direct_matrix_operations_compute_taichi_own_bits(monkeypatch):
+    """The same kernel compiled with tissue.frontend's direct operations and with Taichi's own
+    pyfuncs gives the same bits; and the direct build handed only the vector @ matrix product to
+    Taichi's own (the others were built directly)."""
+    from taichi.lang import matrix_ops
+
+    backend.init("cpu")
+    frontend.install()
+    a = ti.ndarray(ti.types.matrix(3, 3, ti.f64), 64)
+    a.from_numpy(np.random.default_rng(0).normal(size=(64, 3, 3)))
+
+    def run():
+        out, s = ti.ndarray(ti.types.matrix(3, 3, ti.f64), 64), ti.ndarray(ti.f64, 64)
+        _matrix_kernel()(a, out, s)
+        return out.to_numpy(), s.to_numpy()
+
+    handed_over = []
+    with monkeypatch.context() as patch:
+        for name, original in frontend._original_ops.items():
+            patch.setitem(frontend._original_ops, name, functools.partial(_counted, handed_over, name, original))
+        direct = run()
+    with monkeypatch.context() as patch:
+        for name, original in frontend._original_ops.items():
+            patch.setattr(matrix_ops, name, original)
+        taichi_own = run()
+    assert handed_over == ["matmul"]
+    for mine, theirs in zip(direct, taichi_own):
+        assert np.array_equal(mine, theirs)
+    assert np.isfinite(direct[0]).all() and np.abs(direct[0]).max() > 1.0

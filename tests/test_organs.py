@@ -318,3 +318,44 @@ def test_read_surface_refuses_unknown_format(tmp_path):
     path.write_text("x")
     with pytest.raises(TissueError, match="unknown surface format"):
         read_surface(path)
+
+
+def test_the_mesher_loads_open3d_core_alone_and_the_package_adopts_it():
+    """In a fresh process: meshing loads open3d's compiled core without the package (whose
+    visualisation imports dash), and a later `import open3d` reuses that core, not a second copy."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from tissue.mesh.closed_surface import SurfaceQueries, open3d_core\n"
+            "import numpy as np\n"
+            "q = SurfaceQueries(np.array([[0,0,0],[1,0,0],[0,1,0],[0,0,1]], float), np.array([[0,2,1],[0,1,3],[0,3,2],[1,2,3]]))\n"
+            "assert abs(q.signed_distance(np.array([[2.0, 0, 0]]))[0] - 1.0) < 1e-6\n"
+            "assert 'open3d' not in sys.modules and 'dash' not in sys.modules\n"
+            "import open3d\n"
+            "assert open3d.pybind is open3d_core() and open3d.t.geometry.RaycastingScene is open3d_core().t.geometry.RaycastingScene\n")
+    from pathlib import Path
+
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_stomach_implicit_is_exact_near_the_surface_and_keeps_its_sign_beyond():
+    """The stomach's implicit skips the 12-neighbour sweep query far outside: against the plain
+    formula (every point queried), values agree exactly wherever the plain value is within
+    organs._SIGN_ONLY of the surface or inside, and elsewhere both are beyond _SIGN_ONLY (what
+    marching cubes reads: signs, and values within two cells of the surface)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    p = rng.uniform((-0.09, -0.06, -0.21), (0.15, 0.09, 0.04), (60_000, 3))
+    curve, s = organs._sample_curve(organs._STOMACH_CENTRELINE, 600)
+    radius = np.interp(s / s[-1], organs._STOMACH_RADIUS[:, 0], organs._STOMACH_RADIUS[:, 1])
+    flatten, centre_y = np.array([1.0, 1.25, 1.0]), curve[:, 1].mean()
+    dist, idx = cKDTree((curve - [0.0, centre_y, 0.0]) * flatten).query((p - [0.0, centre_y, 0.0]) * flatten, k=12)
+    dome = organs._ellipsoid(p, organs._FUNDUS_CENTRE, organs._FUNDUS_RADII)
+    plain = -organs._smooth_max(-(dist - radius[idx]).min(axis=1), -dome, 0.015)
+    value = organs._stomach_implicit(p)
+    near = plain <= organs._SIGN_ONLY
+    assert 0.1 < near.mean() < 0.9 and (plain < 0).any()
+    assert np.array_equal(value[near], plain[near])
+    assert (value[~near] > organs._SIGN_ONLY).all()

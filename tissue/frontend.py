@@ -19,8 +19,18 @@ decorator, some 230 of them on a scene's imports. `_inside_class` reads that lin
 
 `install()` memoises the first three by their inputs and replaces the class check. Taichi receives
 the same strings and answers as before (tests/test_frontend.py compares them with its own), so its
-messages and its offline-cache keys do not change. `tissue.backend` installs it when imported,
-before any of tissue's modules defines a kernel.
+messages do not change. `tissue.backend` installs it when imported, before any of tissue's modules
+defines a kernel.
+
+The small-matrix operations (`A @ B`, `A @ v`, `.transpose()`, `.outer_product()`, `.sum()`,
+`.dot()`, `.norm_sqr()`, `.norm()`, `.determinant()`, `.inverse()`, `ti.Matrix.identity`, `.zero`)
+are Taichi "pyfuncs": Python with static loops, transformed
+again at every use, one AST node at a time: a 3×3 product unrolls 27 statements, and the step
+kernel made 30 of them (16,000 of its 38,000 nodes). `install()` builds them instead directly from
+the operands' entries, the same scalar arithmetic in the same order as Taichi's own (its `0 · a₀₀
+b₀₀` start of every dot product included): the compiled code computes the same bits
+(tests/test_frontend.py compares the two), the front end does a fifth of the work. Anything else
+(other shapes, Python-scope matrices) goes to Taichi's own.
 """
 
 from __future__ import annotations
@@ -31,13 +41,18 @@ import sys
 import textwrap
 import types
 
-from taichi.lang import kernel_impl
+from taichi.lang import impl, kernel_impl, matrix_ops, ops
 from taichi.lang.ast import ast_transformer_utils
+from taichi.lang.expr import Expr
+from taichi.lang.matrix import make_matrix
 
 _original_pos_info = ast_transformer_utils.ASTTransformerContext.get_pos_info
 _original_sourcelines = kernel_impl.getsourcelines
 _original_sourcefile = kernel_impl.getsourcefile
 _original_inside_class = kernel_impl._inside_class
+_original_ops = {name: getattr(matrix_ops, name)
+                 for name in ("matmul", "transpose", "outer_product", "sum", "dot", "norm_sqr", "norm", "determinant",
+                              "inverse", "_identity_matrix", "_filled_matrix", "_filled_vector")}
 _pos_info: dict[tuple, str] = {}
 
 
@@ -87,12 +102,127 @@ def _inside_class(level_of_class_stackframe: int) -> bool:
     return any(pattern.match(line) for pattern in kernel_impl._KERNEL_CLASS_STACKFRAME_STMT_RES)
 
 
+# ---- small-matrix operations built directly (see the module's docstring) -------------------------
+
+
+def _tensor(x, dims: int) -> bool:
+    """A Taichi-scope matrix (dims 2) or vector (dims 1) expression."""
+    return isinstance(x, Expr) and x.is_tensor() and len(x.get_shape()) == dims
+
+
+def _entries(x) -> list:
+    """x's entries as expressions, x first copied to a local as a ti.func argument is (so each entry
+    reads the same value however often it is used)."""
+    x = impl.expr_init(x)
+    shape = x.get_shape()
+    if len(shape) == 1:
+        return [impl.subscript(None, x, i) for i in range(shape[0])]
+    return [[impl.subscript(None, x, i, j) for j in range(shape[1])] for i in range(shape[0])]
+
+
+def _dot(xs, ys, zero):
+    """Taichi's accumulation in _matmul_helper: ((zero + x₀y₀) + x₁y₁) + …"""
+    total = zero
+    for x, y in zip(xs, ys):
+        total = total + x * y
+    return total
+
+
+def _folded(values):
+    """Taichi's _reduce with add: ((v₀ + v₁) + v₂) + …"""
+    total = values[0]
+    for v in values[1:]:
+        total = total + v
+    return total
+
+
+def _direct(name, build, applies):
+    """Taichi's operation `name`, built by `build` where `applies` to its operands inside a kernel."""
+    def operation(*args, **kwargs):
+        if impl.inside_kernel() and not kwargs and applies(*args):
+            return build(*args)
+        return _original_ops[name](*args, **kwargs)
+
+    # Taichi's attributes of its own (a ti.func's marks, read where a kernel calls it) and its name.
+    return functools.update_wrapper(operation, _original_ops[name])
+
+
+def _matmul(a, b):
+    x, y = _entries(a), _entries(b)
+    if _tensor(b, 1):
+        zero = impl.expr_init(x[0][0] * y[0] * 0)           # Taichi's "for correct return type" zero
+        return impl.expr_init(make_matrix([_dot(row, y, zero) for row in x]))
+    zero = impl.expr_init(x[0][0] * y[0][0] * 0)
+    columns = list(zip(*y))
+    return impl.expr_init(make_matrix([[_dot(row, column, zero) for column in columns] for row in x]))
+
+
+def _matmul_applies(a, b) -> bool:
+    return _tensor(a, 2) and (_tensor(b, 2) or _tensor(b, 1)) and a.get_shape()[1] == b.get_shape()[0]
+
+
+def _norm_sqr(x):
+    return _folded([v * v for v in _flat(x)])
+
+
+def _flat(x) -> list:
+    entries = _entries(x)
+    return entries if len(x.get_shape()) == 1 else [v for row in entries for v in row]
+
+
+def _square(a) -> bool:
+    return _tensor(a, 2) and a.get_shape() in ((2, 2), (3, 3))
+
+
+def _determinant_of(x):
+    """Taichi's formula (matrix_ops.determinant) on the entries x of a 2×2 or 3×3 matrix."""
+    if len(x) == 2:
+        return x[0][0] * x[1][1] - x[0][1] * x[1][0]
+    return (x[0][0] * (x[1][1] * x[2][2] - x[2][1] * x[1][2])
+            - x[1][0] * (x[0][1] * x[2][2] - x[2][1] * x[0][2])
+            + x[2][0] * (x[0][1] * x[1][2] - x[1][1] * x[0][2]))
+
+
+def _inverse(a):
+    """Taichi's (matrix_ops.inverse): 1 / det times the transposed cofactors, as it writes them."""
+    x = _entries(a)
+    inverse_determinant = impl.expr_init(1.0 / _determinant_of(x))
+    if len(x) == 2:
+        return inverse_determinant * make_matrix([[x[1][1], -x[0][1]], [-x[1][0], x[0][0]]])
+    e = lambda i, j: x[i % 3][j % 3]       # noqa: E731  (Taichi's E)
+    return inverse_determinant * make_matrix([[e(i + 1, j + 1) * e(i + 2, j + 2) - e(i + 2, j + 1) * e(i + 1, j + 2)
+                                               for i in range(3)] for j in range(3)])
+
+
+_DIRECT = {
+    "matmul": (_matmul, _matmul_applies),
+    "transpose": (lambda a: make_matrix([list(column) for column in zip(*_entries(a))]), lambda a: _tensor(a, 2)),
+    "outer_product": (lambda u, v: make_matrix([[p * q for q in _entries(v)] for p in _entries(u)]),
+                      lambda u, v: _tensor(u, 1) and _tensor(v, 1)),
+    "sum": (lambda a: _folded(_flat(a)), lambda a: _tensor(a, 1) or _tensor(a, 2)),
+    "dot": (lambda u, v: _folded([p * q for p, q in zip(_entries(u), _entries(v))]),
+            lambda u, v: _tensor(u, 1) and _tensor(v, 1) and u.get_shape() == v.get_shape()),
+    "norm_sqr": (_norm_sqr, lambda a: _tensor(a, 1) or _tensor(a, 2)),
+    "norm": (lambda a, eps=0.0: ops.sqrt(_norm_sqr(a) + eps), lambda a, eps=0.0: _tensor(a, 1) or _tensor(a, 2)),
+    "determinant": (lambda a: _determinant_of(_entries(a)), _square),
+    "inverse": (_inverse, _square),
+    # The constructors take compile-time arguments only: Taichi's own comprehension, without its transform.
+    "_identity_matrix": (lambda n, dtype: make_matrix([[i == j for j in range(n)] for i in range(n)], dtype),
+                         lambda n, dtype: True),
+    "_filled_matrix": (lambda n, m, dtype, val: make_matrix([[val for _ in range(m)] for _ in range(n)], dtype),
+                       lambda n, m, dtype, val: True),
+    "_filled_vector": (lambda n, dtype, val: make_matrix([val for _ in range(n)], dtype), lambda n, dtype, val: True),
+}
+
+
 def install() -> None:
-    """Memoise the front end's source reads, positions and line filling, and replace the
-    decorators' class check (idempotent)."""
+    """Memoise the front end's source reads, positions and line filling, replace the
+    decorators' class check, and build the small-matrix operations directly (idempotent)."""
     ast_transformer_utils.ASTTransformerContext.get_pos_info = _get_pos_info
     kernel_impl.getsourcelines = _getsourcelines_list
     kernel_impl.getsourcefile = functools.cache(_original_sourcefile)
     # kernel_impl's own name for the textwrap module: fill memoised, the rest as is.
     kernel_impl.textwrap = types.SimpleNamespace(fill=_fill, dedent=textwrap.dedent)
     kernel_impl._inside_class = _inside_class
+    for name, (build, applies) in _DIRECT.items():
+        setattr(matrix_ops, name, _direct(name, build, applies))
