@@ -10,6 +10,8 @@ its own:
     warm    both caches filled first by runs of other scenes and settings (FILLERS, less the
             timed command itself): what a user meets on a new scene or a new setting
     again   the same command once more: everything cached
+    taichi  Taichi's cache empty, the mesh cache holding this scene's meshes (procedural meshes are
+            made once per machine): the issue's "from an empty Taichi cache"
 Per run: the wall time, and from stats.json the seconds of mesh generation, of kernel compilation
 (and the kernels compiled; of it, "machine code": the first launches, where LLVM's JIT generates the
 code the offline cache does not keep), of simulation (the run phase without compilation) and the rest (Python
@@ -44,11 +46,13 @@ SCENES = ("incline", "liver_press", "liver", "beam")
 FILLERS = (("beam",), ("liver", "--set", "dt=0.03"))
 
 
-def run(command: tuple[str, ...], caches: Path, steps: int, arch: str, checkout: Path = ROOT) -> dict:
-    """`tissue run` of `command` (scene and options) with the caches under `caches`; wall, CPU and split."""
+def run(command: tuple[str, ...], caches: Path, steps: int, arch: str, checkout: Path = ROOT,
+        taichi_cache: Path | None = None) -> dict:
+    """`tissue run` of `command` (scene and options) with the caches under `caches` (Taichi's at
+    `taichi_cache` if given); wall, CPU and split."""
     out = caches / "out"
-    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(caches / "taichi"), TISSUE_CACHE=str(caches / "tissue"),
-               PYTHONPATH=str(checkout))
+    env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(taichi_cache or caches / "taichi"),
+               TISSUE_CACHE=str(caches / "tissue"), PYTHONPATH=str(checkout))
     argv = [sys.executable, "-m", "tissue", "run", *command, "--no-render", "--steps", str(steps),
             "--arch", arch, "--out", str(out)]
     start, before = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -76,6 +80,9 @@ def measure(scene: str, steps: int, arch: str, checkout: Path = ROOT) -> list[di
         rows.append(dict(scene=scene, caches="warm", filled_by=[" ".join(f) for f in fillers],
                          **run((scene,), Path(tmp), steps, arch, checkout)))
         rows.append(dict(scene=scene, caches="again", **run((scene,), Path(tmp), steps, arch, checkout)))
+        with tempfile.TemporaryDirectory(prefix="tissue-startup-taichi-") as empty:
+            rows.append(dict(scene=scene, caches="taichi",
+                             **run((scene,), Path(tmp), steps, arch, checkout, taichi_cache=Path(empty))))
     return rows
 
 
@@ -126,7 +133,7 @@ def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, in
     keys = ("wall_s", "cpu_s", "mesh_s", "compile_s", "machine_code_s", "kernels", "simulate_s", "other_s")
     results = {scene: {caches: {name: {key: round(float(np.median([r[scene][caches][key] for r in runs[name]])), 3)
                                        for key in keys} for name in runs}
-                       for caches in ("cold", "warm", "again")} for scene in scenes}
+                       for caches in ("cold", "warm", "again", "taichi")} for scene in scenes}
     print(f"{'scene':<12} {'caches':<6} {'wall s: this':>12} {other:>9} {'CPU s: this':>12} {other:>9}")
     for scene, by_caches in results.items():
         for caches, r in by_caches.items():
