@@ -13,6 +13,8 @@ def project_cone(x: np.ndarray, mu: np.ndarray) -> np.ndarray:
     xn, nt = x[:, 0], np.linalg.norm(x[:, 1:], axis=1)
     # xn >= 0 matters when mu = 0 and nt = 0: a point on the negative normal axis is not in K_0.
     inside, polar = (nt <= mu * xn) & (xn >= 0), mu * nt <= -xn
+    if inside.all():                # (a warm start mostly is)
+        return x.copy()
     a = (xn + mu * nt) / (1.0 + mu * mu)
     scale = np.divide(mu * a, nt, out=np.zeros_like(a), where=nt > 0)
     p = np.column_stack([a, scale[:, None] * x[:, 1:]])
