@@ -149,7 +149,7 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
     q = np.einsum("kij,kj->ki", directions, disp)
     q[:, 0] = contacts.gap
     q = [q.ravel()]
-    eye = np.eye(3)[None]
+    eye = np.eye(3)[None] if attachments else None
     for a, att in enumerate(attachments):
         t = k + a
         block.append(np.array([t]))

@@ -280,16 +280,15 @@ class FrictionalContactSolver:
         self._write(self._q, q)
         # Start inside the cones: Jacobi's relaxation keeps r where it starts.
         self._write(self._r, project_cone(r0.reshape(-1, 3), self.mu).ravel())
-        tol_abs = tol * (1.0 + np.linalg.norm(q))
-        run = {"gauss_seidel": self._gauss_seidel, "jacobi": self._jacobi, "newton": self._newton,
-               "auto": self._auto}[self.method]
-        iterations = run(max_iterations, tol_abs)
+        q_norm = float(np.linalg.norm(q))
+        tol_abs = tol * (1.0 + q_norm)
+        iterations = getattr(self, f"_{self.method}")(max_iterations, tol_abs)
         backend.sync()
         r = self._read(self._r)
         elapsed = time.perf_counter() - t0
         if self.method != "jacobi" and self._npr == np.float64:
             # The kernel's own error and u of the returned r (the same formulas, in float64).
-            residual = float(np.sqrt(self._last_error2)) / (1.0 + float(np.linalg.norm(q)))
+            residual = float(np.sqrt(self._last_error2)) / (1.0 + q_norm)
             self.u = self._read(self._u)
         else:
             residual = natural_map_residual(self.W, q, self.mu, r)   # in float64, whatever the backend

@@ -484,13 +484,13 @@ class ContactStage:
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
                 diagonal = np.diagonal(Wc).copy()
-                for j in (1, 2):
+                for j in (1, 2) if len(t) else ():
                     diagonal[3 * t + j] = diagonal[3 * t]
-                scale = float(np.mean(diagonal))
+                scale = float(diagonal.sum()) / m             # (np.mean's sum and division)
                 # Where the solver keeps W: it reads it there without a copy.
                 scaled = dense_buffer(self._lcp, m)
                 np.multiply(Wc, 1.0 / scale, out=scaled)
-                for j in (1, 2):
+                for j in (1, 2) if len(t) else ():
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
             warm = np.zeros((rows.n_contacts, 3))
             if len(self._warm_keys):
