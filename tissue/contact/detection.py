@@ -621,7 +621,7 @@ class Detector:
         res = out[s, slot].astype(np.float64, copy=False)
         k = len(s)
         soft = slot >= no
-        other = slot.copy()
+        other = slot.astype(np.int32)
         triangle = np.full((k, 3), -1, np.int32)
         if soft.any():
             ob = np.asarray(others, np.int32)[slot[soft] - no]
@@ -643,7 +643,6 @@ class Detector:
                     sel = slot == j
                     motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
         return Contacts(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
-                        own_weights=weights[s].astype(np.float64, copy=False), other=other.astype(np.int32),
-                        soft=soft, triangle=triangle,
+                        own_weights=weights[s].astype(np.float64, copy=False), other=other, soft=soft, triangle=triangle,
                         weights=np.where(soft[:, None], res[:, 7:10], 0.0) if soft.any() else np.zeros((k, 3)),
                         normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)

@@ -493,8 +493,10 @@ class ContactStage:
                 for j in (1, 2) if len(t) else ():
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
             warm = np.zeros((rows.n_contacts, 3))
-            if len(self._warm_keys):
-                keys = contacts.keys() if keys is None else keys
+            keys = contacts.keys() if keys is None else keys
+            if np.array_equal(self._warm_keys, keys):        # the same contacts as last step (at rest)
+                warm = np.einsum("kij,kj->ki", rows.frames, self._warm_impulses)
+            elif len(self._warm_keys):
                 pos = np.searchsorted(self._warm_keys, keys)
                 pos = np.minimum(pos, len(self._warm_keys) - 1)
                 hit = self._warm_keys[pos] == keys
