@@ -206,7 +206,7 @@ class ContactStage:
         self.time = 0.0
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
-        self._given_mu = None                   # (the μ given, per body and obstacle as arrays): _friction
+        self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
         self._real, self._np = real, (np.float64 if real == ti.f64 else np.float32)
