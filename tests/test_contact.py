@@ -318,6 +318,44 @@ def test_jds_stores_h_assembled_by_hand(backend):
     np.testing.assert_allclose(q[3 * k + 3:], free[0][4] - 0.25 * free[1][1] - 0.75 * free[1][2], atol=1e-15)
 
 
+def test_jds_of_one_block_per_row_equals_the_sorted_one(backend):
+    """Vertices of two bodies against obstacles (interleaved), a vertex of body 0 against body 1's
+    triangle and an attachment: body 0 has at most one block per block row, in order, whose JDS
+    is taken as the blocks stand (no sort); it equals H assembled by scipy (body_matrix) and, array
+    for array, the JDS the sort builds; body 1 (three blocks on the soft contact's row) is sorted."""
+    from tissue.contact.constraints import Attachment, JaggedDiagonal, build_rows
+    from tissue.contact.detection import Contacts
+
+    rng = np.random.default_rng(5)
+    n0, n1, k = 10, 8, 7
+    body = np.array([0, 1, 0, 0, 1, 0, 0], np.int32)
+    soft = np.array([0, 0, 0, 1, 0, 0, 0], bool)
+    vertex = np.array([4, 2, 1, 7, 5, 9, 0])
+    triangle = np.full((k, 3), -1, np.int32)
+    triangle[3] = (3, 6, 7)
+    normal = rng.standard_normal((k, 3))
+    c = Contacts(body=body, sample=np.arange(k, dtype=np.int32), nodes=np.repeat(vertex[:, None], 3, axis=1).astype(np.int32),
+                 own_weights=np.tile([1.0, 0.0, 0.0], (k, 1)), other=np.where(soft, 1, 0).astype(np.int32), soft=soft,
+                 triangle=triangle, weights=np.where(soft[:, None], rng.dirichlet(np.ones(3), k), 0.0),
+                 normal=normal / np.linalg.norm(normal, axis=1, keepdims=True), gap=rng.normal(0, 1e-3, k),
+                 closest=np.zeros((k, 3)), other_motion=np.zeros((k, 3)))
+    free = [rng.standard_normal((n0, 3)), rng.standard_normal((n1, 3))]
+    rows = build_rows(c, free, [f - 0.01 for f in free], [Attachment(0, 8, point=(0.0, 0.0, 0.0))])
+    for b, n, one_per_row in ((0, n0, True), (1, n1, False)):
+        t = rows.block[rows.body == b]
+        assert (len(t) == len(np.unique(t)) and np.all(np.diff(t) > 0)) == one_per_row
+        jds = JaggedDiagonal(rows, b)
+        np.testing.assert_array_equal(jds.to_dense(rows.n_rows, n), rows.body_matrix(b, n).toarray())
+        sorted_ = JaggedDiagonal.__new__(JaggedDiagonal)
+        sorted_.nnz = len(t)
+        sorted_._sort(rows, t, np.flatnonzero(rows.body == b), jds.value.dtype.type)
+        assert jds.n_active == sorted_.n_active == len(np.unique(t))
+        for name in ("perm", "count", "jd_ptr", "node", "value", "row"):
+            a, e = getattr(jds, name), getattr(sorted_, name)
+            assert a.dtype == e.dtype and a.flags.c_contiguous, name
+            np.testing.assert_array_equal(a, e, err_msg=name)
+
+
 # ----------------------------------------------------------------------------------------------
 # compliance: W and the correction against a direct computation
 # ----------------------------------------------------------------------------------------------

@@ -10,12 +10,16 @@ import taichi as ti
 
 def project_cone(x: np.ndarray, mu: np.ndarray) -> np.ndarray:
     """Projection of each row (x_n, x_t1, x_t2) of x (n, 3) on K_mu (closed form)."""
-    xn, nt = x[:, 0], np.linalg.norm(x[:, 1:], axis=1)
+    xn, nt = x[:, 0], np.sqrt(x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2])     # (np.linalg.norm's sum, fewer calls)
     # xn >= 0 matters when mu = 0 and nt = 0: a point on the negative normal axis is not in K_0.
     inside, polar = (nt <= mu * xn) & (xn >= 0), mu * nt <= -xn
+    if inside.all():                # (zeros; a warm start whose contacts all stick inside)
+        return x.copy()
     a = (xn + mu * nt) / (1.0 + mu * mu)
-    scale = np.divide(mu * a, nt, out=np.zeros_like(a), where=nt > 0)
-    p = np.column_stack([a, scale[:, None] * x[:, 1:]])
+    scale = np.divide(mu * a, nt, out=np.zeros(a.shape, a.dtype), where=nt > 0)
+    p = np.empty(x.shape, np.result_type(a, x))
+    p[:, 0] = a
+    np.multiply(scale[:, None], x[:, 1:], out=p[:, 1:])
     p[polar] = 0.0
     p[inside] = x[inside]
     return p

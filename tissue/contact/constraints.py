@@ -129,31 +129,27 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
     directions = frames
     if frictionless is not None and np.any(frictionless):
         directions = frames * np.where(np.asarray(frictionless)[:, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
-    # Every body's step displacement in one array (body b's nodes from offset[b]).
-    offset = offsets([len(f) for f in free])
-    moved = np.concatenate([np.asarray(f, dtype=np.float64) - p for f, p in zip(free, prev)]) if len(free) \
-        else np.zeros((0, 3))
-    contact = np.arange(k)
+    moved = _displacements(free, prev)
     # The point's own blocks u_j d (weights 0 left out), then the other triangle's -w_j d.
-    own = contacts.own_weights != 0
-    kk, jj = np.nonzero(own)
+    kk, jj = np.nonzero(contacts.own_weights != 0)
     soft = np.flatnonzero(contacts.soft)
-    block = [contact[kk], np.repeat(soft, 3)]
-    body = [contacts.body[kk], np.repeat(contacts.other[soft], 3)]
-    node = [contacts.nodes[kk, jj], contacts.triangle[soft].ravel()]
-    value = [contacts.own_weights[kk, jj, None, None] * directions[kk],
-             -contacts.weights[soft].reshape(-1)[:, None, None] * np.repeat(directions[soft], 3, axis=0)]
-    # δ_free: the gap, and the relative displacement of the two material points along t1, t2.
-    disp = -contacts.other_motion.copy()
-    if k:
-        disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved[offset[contacts.body][:, None] + contacts.nodes])
+    block, body, node = [kk], [contacts.body[kk]], [contacts.nodes[kk, jj]]
+    value = [contacts.own_weights[kk, jj, None, None] * directions[kk]]
     if len(soft):
-        tri = offset[contacts.other[soft]][:, None] + contacts.triangle[soft]
-        disp[soft] -= np.einsum("kj,kjc->kc", contacts.weights[soft], moved[tri])
+        block.append(np.repeat(soft, 3))
+        body.append(np.repeat(contacts.other[soft], 3))
+        node.append(contacts.triangle[soft].ravel())
+        value.append(-contacts.weights[soft].reshape(-1)[:, None, None] * np.repeat(directions[soft], 3, axis=0))
+    # δ_free: the gap, and the relative displacement of the two material points along t1, t2.
+    disp = -contacts.other_motion
+    if k:
+        disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved(contacts.body, contacts.nodes))
+    if len(soft):
+        disp[soft] -= np.einsum("kj,kjc->kc", contacts.weights[soft], moved(contacts.other[soft], contacts.triangle[soft]))
     q = np.einsum("kij,kj->ki", directions, disp)
     q[:, 0] = contacts.gap
     q = [q.ravel()]
-    eye = np.eye(3)[None]
+    eye = np.eye(3)[None] if attachments else None
     for a, att in enumerate(attachments):
         t = k + a
         block.append(np.array([t]))
@@ -172,9 +168,32 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
             node.append(nodes)
             value.append(-w[:, None, None] * eye)
         q.append(p - target)
-    block, body, node = (np.concatenate(a).astype(np.int32) for a in (block, body, node))
+    block, body, node = (_joined(a).astype(np.int32, copy=False) for a in (block, body, node))
     return ConstraintRows(n_rows=3 * k + 3 * len(attachments), n_contacts=k, block=block, body=body, node=node,
-                          value=np.concatenate(value).reshape(-1, 3, 3), q=np.concatenate(q), frames=frames)
+                          value=_joined(value).reshape(-1, 3, 3), q=_joined(q), frames=frames)
+
+
+def _joined(parts: list) -> np.ndarray:
+    """np.concatenate(parts), without its copy of a single part (a scene without attachments or
+    soft–soft contacts builds one part of each)."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+def _displacements(free, prev):
+    """moved(body, nodes): the step's displacement free - prev of the nodes `nodes` (any shape) of
+    the bodies `body` (broadcast along nodes' first axis), each body's read where its points
+    are (subtracted at those nodes alone: the same numbers as over whole bodies)."""
+    if len(free) == 1:
+        f, p = np.asarray(free[0], dtype=np.float64), np.asarray(prev[0], dtype=np.float64)
+        return lambda body, nodes: f[nodes] - p[nodes]
+    offset = offsets([len(f) for f in free])
+    f = np.concatenate([np.asarray(f, dtype=np.float64) for f in free] or [np.zeros((0, 3))])
+    p = np.concatenate([np.asarray(p, dtype=np.float64) for p in prev] or [np.zeros((0, 3))])
+
+    def moved(body, nodes):
+        index = offset[body].reshape((-1,) + (1,) * (nodes.ndim - 1)) + nodes
+        return f[index] - p[index]
+    return moved
 
 
 class JaggedDiagonal:
@@ -197,8 +216,30 @@ class JaggedDiagonal:
 
     def __init__(self, rows: ConstraintRows, body: int):
         sel = np.flatnonzero(rows.body == body)
-        n_block_rows = rows.n_rows // 3
         t = rows.block[sel]
+        real = np.float64 if backend.current().real == ti.f64 else np.float32
+        self.nnz = len(t)
+        if len(t) and np.all(t[1:] > t[:-1]):
+            # At most one block per block row, in order (a body's vertices against obstacles): the
+            # JDS is one jagged diagonal, the blocks as they are (what the general case gives).
+            self.n_active = len(t)
+            self.perm, self.count = t.astype(np.int32), np.ones(len(t), np.int32)
+            self.jd_ptr = np.array([0, len(t)], np.int32)
+            self.node, self.row = rows.node[sel].astype(np.int32, copy=False), self.perm.copy()
+            self.value = rows.value[sel].astype(real, copy=False)
+        else:
+            self._sort(rows, t, sel, real)
+        # The nodes the body's rows touch and each entry's index among them: W needs the
+        # compliance only between these (3 × touched columns of A₀⁻¹, not all 3n).
+        self.touched, local = np.unique(self.node, return_inverse=True)
+        self.local = local.astype(np.int32).reshape(-1)
+        self.touched = self.touched.astype(np.int32)
+        self.packed = np.concatenate([self.perm, self.count, self.jd_ptr, self.node, self.local, self.touched])
+
+    def _sort(self, rows: ConstraintRows, t: np.ndarray, sel: np.ndarray, real) -> None:
+        """perm, count, jd_ptr and the entries (node, value, row) of the block rows `t` of the
+        body's entries `sel`, sorted by their number of blocks."""
+        n_block_rows = rows.n_rows // 3
         by_row = np.argsort(t, kind="stable")         # a block row's entries keep their order
         count = np.bincount(t, minlength=n_block_rows)
         order = np.argsort(-count, kind="stable")
@@ -213,20 +254,12 @@ class JaggedDiagonal:
         lengths = len(count) - np.cumsum(np.bincount(count, minlength=k_max + 1)[:k_max])
         jd_ptr = offsets(lengths)
         index = jd_ptr[rank] + position[t]
-        real = np.float64 if backend.current().real == ti.f64 else np.float32
-        self.nnz = len(t)
         self.perm, self.count = order[:self.n_active].astype(np.int32), count[order[:self.n_active]].astype(np.int32)
         self.jd_ptr = jd_ptr.astype(np.int32)
         self.node = np.empty(self.nnz, np.int32)
         self.value = np.empty((self.nnz, 3, 3), real)
         self.row = np.empty(self.nnz, np.int32)
         self.node[index], self.value[index], self.row[index] = rows.node[sel], rows.value[sel], t
-        # The nodes the body's rows touch and each entry's index among them: W needs the
-        # compliance only between these (3 × touched columns of A₀⁻¹, not all 3n).
-        self.touched, local = np.unique(self.node, return_inverse=True)
-        self.local = local.astype(np.int32).reshape(-1)
-        self.touched = self.touched.astype(np.int32)
-        self.packed = np.concatenate([self.perm, self.count, self.jd_ptr, self.node, self.local, self.touched])
 
     def to_dense(self, n_rows: int, n_nodes: int) -> np.ndarray:
         """The block as a dense (n_rows × 3 n_nodes) matrix, read back from the JDS arrays."""

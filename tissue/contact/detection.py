@@ -488,6 +488,7 @@ class Detector:
         if balls:
             self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
         self._moving = [o.motion is not None for o in self.obstacles]
+        self._any_moving = any(self._moving)
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
@@ -534,8 +535,7 @@ class Detector:
         fields_ = [self._field(b, p) for b, p in enumerate(positions)]
         self._setup(fields_)
         no = len(self.obstacles)
-        identity = [(np.eye(3), np.zeros(3))] * no
-        poses = identity if poses is None else poses
+        poses = [(np.eye(3), np.zeros(3))] * no if poses is None else poses
         previous_poses = poses if previous_poses is None else previous_poses
         packed = self._poses                  # filled in place: the launches replay (tissue.launch)
         for o, (R, t) in enumerate(poses):
@@ -618,10 +618,10 @@ class Detector:
         no = len(self.obstacles)
         nodes, weights = self.samples[a]
         s, slot = np.nonzero(out[:-1, :, 0] < 1e299)        # (none: 1e300, or inf in float32)
-        res = out[s, slot].astype(np.float64)
+        res = out[s, slot].astype(np.float64, copy=False)
         k = len(s)
         soft = slot >= no
-        other = slot.copy()
+        other = slot.astype(np.int32)
         triangle = np.full((k, 3), -1, np.int32)
         if soft.any():
             ob = np.asarray(others, np.int32)[slot[soft] - no]
@@ -636,12 +636,13 @@ class Detector:
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
         motion = np.zeros((k, 3))
-        for j in np.unique(slot[~soft]):
-            if self._moving[j]:
-                (R1, t1), (R0, t0) = poses[j], previous_poses[j]
-                sel = slot == j
-                motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
+        if self._any_moving:
+            for j in np.unique(slot[~soft]):
+                if self._moving[j]:
+                    (R1, t1), (R0, t0) = poses[j], previous_poses[j]
+                    sel = slot == j
+                    motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
         return Contacts(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
-                        own_weights=weights[s].astype(np.float64), other=other.astype(np.int32), soft=soft,
-                        triangle=triangle, weights=np.where(soft[:, None], res[:, 7:10], 0.0),
+                        own_weights=weights[s].astype(np.float64, copy=False), other=other, soft=soft, triangle=triangle,
+                        weights=np.where(soft[:, None], res[:, 7:10], 0.0) if soft.any() else np.zeros((k, 3)),
                         normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)

@@ -116,7 +116,8 @@ class FrictionalContactSolver:
         reduce: Gauss-Seidel sweeps the contacts in play alone, W among them formed (see `_gauss_seidel`;
         method 'gauss_seidel' only).
         check=False skips the finiteness and positive-definiteness checks of W (O(n²) and a
-        3×3 eigenproblem per contact): for a caller that builds W itself (the contact stage).
+        3×3 eigenproblem per contact), and the finiteness and sign checks of μ, q and r0: for a
+        caller that builds the problem itself (the contact stage, which checks the reactions).
         storage: where the device arrays and their argpacks are kept (Storage(host=True)), for a
         caller that makes a solver per problem (the contact stage, every step): a solve on kept
         arrays sets no argument again (its launch replays, tissue.launch). The arrays are this
@@ -152,8 +153,9 @@ class FrictionalContactSolver:
             mu = np.full(n, float(mu))
         if mu.shape != (n,):
             raise TissueError(f"mu: expected a scalar or shape ({n},) to match W {W.shape}, got {mu.shape}")
-        _finite("mu", mu)
-        if np.any(mu < 0):
+        if check:
+            _finite("mu", mu)
+        if check and np.any(mu < 0):
             raise TissueError(f"mu: negative friction coefficient at contact {int(np.argmax(mu < 0))}")
         D = W.diagonal if factored else _diagonal_blocks(W, n)
         if n and check:
@@ -163,7 +165,7 @@ class FrictionalContactSolver:
             if len(bad):
                 raise TissueError(f"W: diagonal 3x3 block of contact {bad[0]} is not positive definite"
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
-        self.n, self.W, self.mu, self.method, self._D_host = n, W, mu, method, D
+        self.n, self.W, self.mu, self.method, self._D_host, self.check = n, W, mu, method, D, check
         self.anderson = int(anderson) if method != "jacobi" else 0
         self.reduce = bool(reduce) and method == "gauss_seidel"      # (auto sweeps the whole problem)
         dense = layout == "dense" or (layout == "auto" and (
@@ -255,13 +257,15 @@ class FrictionalContactSolver:
         q = np.asarray(q, dtype=np.float64)
         if q.shape != (3 * n,):
             raise TissueError(f"q: expected shape ({3 * n},) to match W {self.W.shape}, got {q.shape}")
-        _finite("q", q)
+        if self.check:
+            _finite("q", q)
         if r0 is None:
             r0 = np.zeros(3 * n)
         r0 = np.asarray(r0, dtype=np.float64)
         if r0.shape != (3 * n,):
             raise TissueError(f"r0: expected shape ({3 * n},) to match W {self.W.shape}, got {r0.shape}")
-        _finite("r0", r0)
+        if self.check:
+            _finite("r0", r0)
         if not (np.isfinite(tol) and tol > 0):
             raise TissueError(f"tol: must be a positive number, got {tol!r}")
         if int(max_iterations) != max_iterations or max_iterations < 0:
@@ -276,16 +280,15 @@ class FrictionalContactSolver:
         self._write(self._q, q)
         # Start inside the cones: Jacobi's relaxation keeps r where it starts.
         self._write(self._r, project_cone(r0.reshape(-1, 3), self.mu).ravel())
-        tol_abs = tol * (1.0 + np.linalg.norm(q))
-        run = {"gauss_seidel": self._gauss_seidel, "jacobi": self._jacobi, "newton": self._newton,
-               "auto": self._auto}[self.method]
-        iterations = run(max_iterations, tol_abs)
+        q_norm = float(np.linalg.norm(q))
+        tol_abs = tol * (1.0 + q_norm)
+        iterations = getattr(self, f"_{self.method}")(max_iterations, tol_abs)
         backend.sync()
         r = self._read(self._r)
         elapsed = time.perf_counter() - t0
         if self.method != "jacobi" and self._npr == np.float64:
             # The kernel's own error and u of the returned r (the same formulas, in float64).
-            residual = float(np.sqrt(self._last_error2)) / (1.0 + float(np.linalg.norm(q)))
+            residual = float(np.sqrt(self._last_error2)) / (1.0 + q_norm)
             self.u = self._read(self._u)
         else:
             residual = natural_map_residual(self.W, q, self.mu, r)   # in float64, whatever the backend

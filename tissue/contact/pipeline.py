@@ -206,6 +206,7 @@ class ContactStage:
         self.time = 0.0
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
+        self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
         self._real, self._np = real, (np.float64 if real == ti.f64 else np.float32)
@@ -259,9 +260,16 @@ class ContactStage:
         """μ per contact: soft–soft the smaller of the two bodies' (the default unless both say);
         soft–rigid the obstacle's, else the body's, else the default."""
         default = self.settings.friction
-        body_mu = np.array([np.nan if b.friction is None else b.friction for b in self.bodies])
-        obstacle_mu = np.array([np.nan if o.friction is None else o.friction for o in self.obstacles] or [np.nan])
+        given = (tuple(b.friction for b in self.bodies), tuple(o.friction for o in self.obstacles))
+        if self._given_mu is None or self._given_mu[0] != given:     # (bodies' and obstacles' μ may be set anew)
+            body_mu = np.array([np.nan if mu is None else mu for mu in given[0]])
+            obstacle_mu = np.array([np.nan if mu is None else mu for mu in given[1]] or [np.nan])
+            self._given_mu = (given, body_mu, obstacle_mu)
+        _, body_mu, obstacle_mu = self._given_mu
         own = body_mu[contacts.body]
+        if not contacts.soft.any():                 # soft–rigid only: the last line's choice made
+            other = obstacle_mu[contacts.other]
+            return np.where(np.isnan(other), np.where(np.isnan(own), default, own), other)
         other = np.where(contacts.soft, body_mu[np.where(contacts.soft, contacts.other, 0)],
                          obstacle_mu[np.where(contacts.soft, 0, contacts.other)])
         soft = np.where(np.isnan(own) | np.isnan(other), default, np.fmin(own, other))
@@ -370,15 +378,16 @@ class ContactStage:
                     c.prepare(rows, b)
                     c.add_to(W)
 
+        keys = contacts.keys()
         with stats.stage("lcp"):
-            lam, info = self._solve(W, rows, contacts, mu)
+            lam, info = self._solve(W, rows, contacts, mu, keys)
 
         with stats.stage("correction"):
             for b in touched:
                 self.compliance[b].correct(lam)
 
         nc = rows.n_contacts
-        self._warm_keys = contacts.keys()
+        self._warm_keys = keys
         self._warm_impulses = np.einsum("ki,kij->kj", lam[:3 * nc].reshape(-1, 3), rows.frames)
         self.last = ContactResult(contacts, rows, W, lam, info, h)
         normal = self._gaps[0::3]                               # δ_n after the correction
@@ -448,9 +457,10 @@ class ContactStage:
                                 Q[:total].astype(np.float64, copy=False), y_offset, q_offset,
                                 diagonal[:n_block_rows].astype(np.float64, copy=False), scale=self.dt)
 
-    def _solve(self, W, rows: ConstraintRows, contacts: Contacts, mu: np.ndarray):
+    def _solve(self, W, rows: ConstraintRows, contacts: Contacts, mu: np.ndarray, keys: np.ndarray | None = None):
         """λ (n_rows,) from δ = W λ + δ_free: attachments eliminated (Schur; W an array then), then
-        the cone problem. Leaves the contacts' δ at λ in `_gaps` (3 per contact)."""
+        the cone problem, warm-started by the contacts' identities (`keys`: contacts.keys(), when
+        the caller has them). Leaves the contacts' δ at λ in `_gaps` (3 per contact)."""
         s = self.settings
         m = 3 * rows.n_contacts
         q = rows.q
@@ -474,17 +484,19 @@ class ContactStage:
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
                 diagonal = np.diagonal(Wc).copy()
-                for j in (1, 2):
+                for j in (1, 2) if len(t) else ():
                     diagonal[3 * t + j] = diagonal[3 * t]
-                scale = float(np.mean(diagonal))
+                scale = float(diagonal.sum()) / m             # (np.mean's sum and division)
                 # Where the solver keeps W: it reads it there without a copy.
                 scaled = dense_buffer(self._lcp, m)
                 np.multiply(Wc, 1.0 / scale, out=scaled)
-                for j in (1, 2):
+                for j in (1, 2) if len(t) else ():
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
             warm = np.zeros((rows.n_contacts, 3))
-            if len(self._warm_keys):
-                keys = contacts.keys()
+            keys = contacts.keys() if keys is None else keys
+            if np.array_equal(self._warm_keys, keys):        # the same contacts as last step (at rest)
+                warm = np.einsum("kij,kj->ki", rows.frames, self._warm_impulses)
+            elif len(self._warm_keys):
                 pos = np.searchsorted(self._warm_keys, keys)
                 pos = np.minimum(pos, len(self._warm_keys) - 1)
                 hit = self._warm_keys[pos] == keys

@@ -86,7 +86,9 @@ class Storage:
         CPU written through a numpy view of its memory kept with it (no copy kernel, no view made
         per call), elsewhere uploaded padded to its length."""
         array = self.get(name, len(values), dtype, tail)
-        if backend.current().arch == "cpu":
+        if self.host:
+            array[:len(values)] = values
+        elif backend.current().arch == "cpu":
             self.view(name)[:len(values)] = values
         else:
             padded = np.zeros((array.shape[0],) + np.shape(values)[1:], np.asarray(values).dtype)

@@ -1,0 +1,93 @@
+"""Whether the contact stage of this checkout computes the same numbers as another commit's, bit for bit.
+
+    python -m bench.contact_same [--other f0c7493]
+
+For changes meant to make the contact stage faster without changing its results (its Python and
+numpy glue): both checkouts run the same scenes, by this checkout's bench/contact.py over each
+checkout's own tissue, and every step's positions, velocities, contact forces, reactions λ and
+sweeps are compared with np.array_equal (a -0.0 equals a 0.0). Scenes: SOFA's floor scene with
+compliance warping (60 steps with the scenes' step control, 30 without), with the exact compliance
+(20 steps), and `liver_press` (45 steps, its W kept as factors, soft–soft and soft–rigid rows).
+Prints the scenes' largest row counts and the differing entries; exits with 1 if any differ.
+Writes bench/results/contact_same.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import alternate_with_commit, machine, print_machine, write_results
+
+SCENES = (("floor", "warped", None, 60), ("floor_no_step_control", "warped", "none", 30),
+          ("floor_exact", "exact", None, 20), ("liver_press", "warped", None, 45))
+
+# Runs inside a checkout, with this checkout's bench/contact.py over the checkout's own tissue.
+CHILD = r"""
+import importlib.util, os, sys
+import numpy as np
+from tissue import backend
+backend.init("cpu")
+spec = importlib.util.spec_from_file_location("bench_contact_same", os.environ["TISSUE_BENCH_CONTACT"])
+bc = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(bc)
+out = {}
+for tag, compliance, control, steps in SCENES:
+    sim = bc.press(compliance) if tag == "liver_press" else bc.floor_scene(compliance, control)
+    stage = next(s for s in sim.stages if s.name == "contact").stage
+    for i in range(steps):
+        sim.step()
+        for name, state in sim.state().items():
+            out[f"{tag}/{i}/{name}/x"], out[f"{tag}/{i}/{name}/v"] = state["positions"], state["velocities"]
+        r = stage.last
+        out[f"{tag}/{i}/forces"], out[f"{tag}/{i}/impulses"] = r.contact_forces, r.impulses.copy()
+        out[f"{tag}/{i}/sweeps"] = np.array([r.info.iterations if r.info else -1])
+np.savez(sys.argv[1], **out)
+"""
+
+
+def run(checkout: Path, folder: Path) -> Path:
+    path = folder / f"{checkout.name}.npz"
+    env = dict(os.environ, PYTHONPATH=str(checkout),
+               TISSUE_BENCH_CONTACT=str(Path(__file__).resolve().with_name("contact.py")))
+    done = subprocess.run([sys.executable, "-c", f"SCENES = {SCENES!r}\n" + CHILD, str(path)], cwd=checkout,
+                          env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
+    return path
+
+
+def compare(this: Path, other: Path) -> dict:
+    a, b = np.load(this), np.load(other)
+    differ = sorted(set(a.files) ^ set(b.files))
+    differ += [k for k in sorted(set(a.files) & set(b.files)) if not np.array_equal(a[k], b[k])]
+    rows = {tag: max(len(a[k]) for k in a.files if k.startswith(f"{tag}/") and k.endswith("/impulses"))
+            for tag, *_ in SCENES}
+    return {"entries": len(a.files), "differ": differ, "rows_max": rows}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--other", default="f0c7493", help="the commit to compare with")
+    args = parser.parse_args(argv)
+    info = machine()
+    print_machine(info)
+    with tempfile.TemporaryDirectory(prefix="tissue-contact-same-") as tmp:
+        folder = Path(tmp)
+        other, runs = alternate_with_commit(args.other, 1, lambda checkout: run(checkout, folder),
+                                            lambda path: path.name, "tissue-contact-same-")
+        result = compare(runs["this"][0], runs["other"][0])
+    print(f"largest row counts {result['rows_max']}; {result['entries']} arrays, "
+          f"{len(result['differ'])} differ from {other}'s" + (f": {result['differ'][:10]}" if result["differ"] else ""))
+    write_results("contact_same", {"machine": info, "other": other, **result})
+    sys.exit(1 if result["differ"] else 0)
+
+
+if __name__ == "__main__":
+    main()
