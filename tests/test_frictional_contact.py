@@ -583,7 +583,9 @@ def test_newton_soft_body_more_rows_than_dofs(solve, method, monkeypatch):
     from tissue.contact import newton
 
     steps, newton_step = [], newton.newton_step
-    monkeypatch.setattr(newton, "newton_step", lambda *a, **k: steps.append(1) or newton_step(*a, **k))
+    # steps: each Newton step's system size (3 × the closing contacts, newton_step's `closing`)
+    monkeypatch.setattr(newton, "newton_step",
+                        lambda *a, **k: steps.append(3 * np.count_nonzero(a[6])) or newton_step(*a, **k))
     rng = np.random.default_rng(7)
     W, _, mu = soft_body_problem(300, 60, rng)
     W /= np.mean(np.diagonal(W))                          # as the contact stage poses it
@@ -686,23 +688,28 @@ def test_newton_gmres_on_a_nearby_factor_matches_lapack():
     assert np.linalg.norm(x - np.linalg.solve(Jn, b)) <= 1e-8 * np.linalg.norm(np.linalg.solve(Jn, b))
 
 
-@pytest.mark.parametrize("reuse", [False, True])
-def test_newton_reusing_its_factor_solves_the_same_problem(solve, monkeypatch, reuse):
+@pytest.mark.parametrize("mode", ["fresh", "reuse", "jacobi"])
+def test_newton_reusing_its_factor_solves_the_same_problem(solve, monkeypatch, mode):
     """A Newton system of more than SINGLE_ROWS rows: with the last LU reused through GMRES
-    (newton.REUSE_CHANGES = 1: whenever the closing contacts are the same) and without (no GMRES
-    iterations: a fresh LU every step), the
-    solve ends at the tolerance (the natural-map residual recomputed here) and matches the other
-    within it; with reuse, fewer LUs than Newton steps."""
+    (newton.REUSE_CHANGES = 1: whenever the closing contacts are the same), with GMRES
+    preconditioned by the diagonal blocks before any LU (and no LU reused), and with neither (a
+    fresh LU every step), the solve ends at the tolerance (the natural-map residual recomputed
+    here) and matches the known solution within it; with either GMRES, fewer LUs than Newton
+    steps."""
     import scipy.linalg
 
     from tissue.contact import newton
 
     factors, steps, lu_factor, newton_step = [], [], scipy.linalg.lu_factor, newton.newton_step
     monkeypatch.setattr(scipy.linalg, "lu_factor", lambda a, **kw: factors.append(len(a)) or lu_factor(a, **kw))
-    monkeypatch.setattr(newton, "newton_step", lambda *a, **k: steps.append(1) or newton_step(*a, **k))
+    # steps: each Newton step's system size (3 × the closing contacts, newton_step's `closing`)
+    monkeypatch.setattr(newton, "newton_step",
+                        lambda *a, **k: steps.append(3 * np.count_nonzero(a[6])) or newton_step(*a, **k))
     monkeypatch.setattr(newton, "REUSE_CHANGES", 1.0)
-    if not reuse:
+    if mode != "reuse":
         monkeypatch.setattr(newton, "REUSE_ITERATIONS", 0)
+    if mode != "jacobi":
+        monkeypatch.setattr(newton, "JACOBI_ITERATIONS", 0)
     rng = np.random.default_rng(8)
     W = random_delassus(300, rng)
     W /= np.mean(np.diagonal(W))
@@ -710,9 +717,9 @@ def test_newton_reusing_its_factor_solves_the_same_problem(solve, monkeypatch, r
     q, r_star = solvable_problem(W, mu, rng)
     r, info = solve(W, q, mu, tol=1e-9, max_iterations=100, method="newton")
     assert info.converged and natural_map(W, q, mu, r) <= 1e-9
-    assert max(factors) >= newton.SINGLE_ROWS
+    assert max(steps) >= newton.SINGLE_ROWS
     np.testing.assert_allclose(r, r_star, atol=1e-6 * np.abs(r_star).max())
-    if reuse:
+    if mode != "fresh":
         assert len(factors) < len(steps)
     else:
         assert len(factors) >= len(steps)

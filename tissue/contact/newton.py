@@ -33,8 +33,13 @@ closing contacts changed state since the last LU, the step is solved by GMRES pr
 that LU (on the contacts closing in both; see _preconditioner), a few O(k²) iterations instead
 of an O(k³) factorisation, as an inexact Newton step (Dembo, Eisenstat & Steihaug 1982) whose
 relative residual follows Φ's progress (Eisenstat & Walker 1996, within FORCING); a fresh LU when
-GMRES does not get there within REUSE_ITERATIONS. On the press plate (2,166 closing rows, ~5
-Newton steps a solve) it leaves 2-3 LUs of ~0.1 s each per solve instead of 5-7.
+GMRES does not get there within REUSE_ITERATIONS. Where no LU serves (a solve's first step, or
+many contacts changed state since: the early steps of a solve from zero, which a factor would
+serve once), GMRES preconditioned by J's 3×3 diagonal blocks first, within JACOBI_ITERATIONS
+(each an O(k²) product): those steps' forcing is loose, and on the press plate it gets there in
+tens of iterations (~30-90 ms against a ~0.1-0.15 s LU). On the press plate (2,166 closing
+rows, ~5-8 Newton steps a solve) the first, solved from zero, then takes no LU at all (4
+before), the others 0-1 instead of 3 (5-7 with a fresh LU every step).
 
 Globalisation: a backtracking line search on ½|Φ|² (Armijo); when it fails (nonsmooth kinks, a
 singular step), GS_FALLBACK sweeps of projected Gauss-Seidel from the current r, then Newton again.
@@ -73,6 +78,8 @@ GS_FALLBACK = 10         # Gauss-Seidel sweeps run when the line search gives up
 REUSE_CHANGES = 0.1      # a system of SINGLE_ROWS rows or more: GMRES preconditioned by the solve's last LU
                          # while at most this fraction of the closing contacts changed stick/slide state since,
 REUSE_ITERATIONS = 12    # ... within this many iterations (else a fresh LU),
+JACOBI_ITERATIONS = 100  # ... and where no LU serves: GMRES preconditioned by J's 3×3 diagonal blocks, within
+                         # this many iterations, before a fresh LU
 FORCING = (1e-3, 0.1)    # ... to a relative residual 0.9 (|Φ_k| / |Φ_k-1|)² clipped to this (Eisenstat-Walker)
 
 
@@ -162,12 +169,19 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     # Φ falls fast) keeps the convergence fast.
     state = np.zeros(len(phi), np.int8)
     state[act] = 1 + A[act].any(axis=(1, 2))        # (a closing contact's A is zero iff it sticks)
-    x = None
+    x, forcing = None, FORCING[0] if forcing is None else forcing
     if shared.lu is not None and np.count_nonzero(state != shared.state) <= REUSE_CHANGES * a:
         x = _gmres(J, rhs.ravel(), _preconditioner(J, shared.lu, np.flatnonzero(shared.state), act),
-                   FORCING[0] if forcing is None else forcing, REUSE_ITERATIONS)
+                   forcing, REUSE_ITERATIONS)
+    if x is None and k >= SINGLE_ROWS:
+        # No LU to reuse (the first step, or many contacts changed state: the early steps of a
+        # solve from zero): GMRES preconditioned by J's diagonal blocks often reaches the loose
+        # forcing of those steps for less than an LU, which would serve only them.
+        inverses = _diagonal_inverses(J, idx)
+        x = _gmres(J, rhs.ravel(), lambda v: np.einsum("iab,ib->ia", inverses, v.reshape(-1, 3)).ravel(),
+                   forcing, JACOBI_ITERATIONS)
     if x is None:
-        x, shared.lu = _factor_solve(J, rhs.ravel())
+        x, shared.lu = _factor_solve(J, rhs.ravel(), forcing)
         shared.state = state
     dr[act] = x.reshape(-1, 3)
     return dr
@@ -178,11 +192,13 @@ def _lu_solve(J, b):
     return _factor_solve(J, b)[0]
 
 
-def _factor_solve(J, b):
-    """(J⁻¹ b, its float32 LU or None) by LAPACK's LU; from SINGLE_ROWS rows on, factorised in
-    float32 (half the time) and refined in float64 (a few residuals J x - b, one O(k²) product
-    each), in float64 outright where the refinement does not reach REFINED (J too ill-conditioned
-    for float32; no factor returned then). J may be overwritten."""
+def _factor_solve(J, b, tol=REFINED):
+    """(x, its float32 LU or None) with |J x - b| <= max(tol, REFINED) |b| by LAPACK's LU; from
+    SINGLE_ROWS rows on, factorised in float32 (half the time) and refined in float64 (a few
+    residuals J x - b, one O(k²) product each) only as far as tol asks (an inexact Newton step
+    needs no more than GMRES's: Newton's first steps, whose states change most, take tol 0.1), in
+    float64 outright where the refinement does not get there (J too ill-conditioned for float32;
+    no factor returned then). J may be overwritten."""
     if len(b) >= SINGLE_ROWS:
         lu = scipy.linalg.lu_factor(J.astype(np.float32), overwrite_a=True, check_finite=False)
         x = np.zeros_like(b)
@@ -190,7 +206,7 @@ def _factor_solve(J, b):
         for _ in range(REFINEMENTS):
             x += scipy.linalg.lu_solve(lu, residual.astype(np.float32), check_finite=False)
             residual = b - J @ x
-            if np.linalg.norm(residual) <= REFINED * np.linalg.norm(b):
+            if np.linalg.norm(residual) <= max(tol, REFINED) * np.linalg.norm(b):
                 return x, lu
     return scipy.linalg.lu_solve(scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False), b,
                                  check_finite=False), None
@@ -209,8 +225,7 @@ def _preconditioner(J, lu, before, act):
     both = np.isin(act, before)
     old, new = _dofs(np.searchsorted(before, act[both])), _dofs(np.flatnonzero(both))
     fresh = np.flatnonzero(~both)
-    a = len(act)
-    inverses = np.linalg.pinv(J.reshape(a, 3, a, 3)[fresh, :, fresh, :])
+    inverses = _diagonal_inverses(J, fresh)
 
     def apply(v):
         w = np.zeros(3 * len(before))
@@ -221,6 +236,12 @@ def _preconditioner(J, lu, before, act):
         return out
 
     return apply
+
+
+def _diagonal_inverses(J, contacts):
+    """The (pseudo-)inverses of J's 3×3 diagonal blocks of `contacts` (positions among J's)."""
+    a = J.shape[0] // 3
+    return np.linalg.pinv(J.reshape(a, 3, a, 3)[contacts, :, contacts, :])
 
 
 def _dofs(contacts):
