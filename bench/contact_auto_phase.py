@@ -5,10 +5,13 @@ or frictional_contact), alternately in one process, CPU time the best of REPEATS
 
     OPENBLAS_NUM_THREADS=1 python -m bench.contact_auto_phase    # ~5 min; bench/results/contact_auto_phase.json
 
-Variants: "fresh LU", every Newton step factorised (newton.REUSE_ITERATIONS = 0: the solver before
-the LU was reused), and "reused LU", the default (GMRES on the solve's last LU once few contacts
-change state; see tissue.contact.newton). (Before, the variants were auto's sweep phase on large
-problems, 16 and 4: commit f805f65's JSON.)
+Variants: "reused LU" (GMRES on the solve's last LU once few contacts change state, a fresh LU
+otherwise, newton.JACOBI_ITERATIONS = 0: commit ea2594b's solver but for the LU's refinement, which
+now stops at the step's forcing) and "diagonal GMRES first",
+the default (where no LU serves, GMRES preconditioned by the Newton system's 3×3 diagonal blocks
+before a fresh LU; see tissue.contact.newton). The problems include step 1, solved from zero.
+(Before, the variants were a fresh LU every Newton step against the reused LU:
+commit 00c9082's JSON; auto's sweep phase on large problems, 16 and 4: commit f805f65's.)
 
 Per variant: the CPU time per solve (median, max, count over 1 s), Newton steps and sweeps
 together (median), the LUs per solve (median, max), and the largest natural-map residual,
@@ -26,7 +29,7 @@ import numpy as np
 
 from bench.common import machine, print_machine, write_results
 
-VARIANTS = {"fresh LU": {"REUSE_ITERATIONS": 0}, "reused LU": {}}
+VARIANTS = {"reused LU": {"JACOBI_ITERATIONS": 0}, "diagonal GMRES first": {}}
 STEP_EVERY = 3
 REPEATS = 2
 TOL = 1e-6
