@@ -192,7 +192,7 @@ class ImplicitEuler:
         self._pack_key = None
         self.multigrid = None
         self.parameters = parameters
-        self._regime = None
+        self._checked_material = None     # the material check_regime last passed
         self.check_regime()
         self._resize()
         if fixed is not None:
@@ -405,11 +405,11 @@ class ImplicitEuler:
         material."""
         material = self.model.material
         check_regime(self.fem.rotation, material, self.gravity if gravity is None else gravity, self.model.points)
-        self._regime = material
+        self._checked_material = material
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
-        if self._regime is not self.model.material:
+        if self._checked_material is not self.model.material:
             self.check_regime()
         k, o = self._step_pack(), self.scheme
         tol = self.fem.rotation_tolerance
