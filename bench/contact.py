@@ -201,7 +201,7 @@ def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int =
     if check_every:
         solve, seen = stage._solve, [0]
 
-        def checked(W, rows, contacts, mu):
+        def checked(W, rows, contacts, mu, keys=None):
             if rows.n_rows >= min_rows:
                 seen[0] += 1
                 if seen[0] % check_every == 0:       # (left out of the timings and launch counts)
@@ -221,7 +221,7 @@ def run_press(compliance: str, steps: int, check_every: int = 0, min_rows: int =
                     if problems is not None:
                         problems.append(posed(W, rows, contacts, mu))
                     launches.paused = False
-            return solve(W, rows, contacts, mu)
+            return solve(W, rows, contacts, mu, keys)
 
         stage._solve = checked
         posed = _posed(solve)
