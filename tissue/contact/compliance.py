@@ -334,7 +334,7 @@ class WarpedCompliance:
         self.source = None                  # a CuttingCompliance to read A₀⁻¹ from (follow)
         self._tol = solver.fem.rotation_tolerance
         self.storage = Storage()                              # this step's scratch: see prepare
-        self.jds, self._ready = None, False
+        self._ready = False
         self._pack_key = None
         # The step's scalars (see WARP), written in place each step.
         self._sizes, self._reals = np.zeros(len(WARP_SIZES), np.int32), np.zeros(len(WARP_REALS), self._np)
@@ -347,6 +347,7 @@ class WarpedCompliance:
         solver = self.solver
         fem = solver.fem
         n = fem.n_nodes
+        self.jds = None                  # the next rows are written anew (prepare)
         if self.source is not None:      # folded only where W needs it (prepare)
             self.source.update()
             self.C0, self.inverse_mass = self.source.C, 0.0
@@ -401,8 +402,12 @@ class WarpedCompliance:
 
     def prepare(self, jds: JaggedDiagonal) -> None:
         """This step's rows of H (the work is done by `add_to` or `factor`, or by `correct`
-        without them), written into the arrays the launches keep."""
-        self.jds, self._ready = jds, False
+        without them), written into the arrays the launches keep; there already when they are
+        last step's (the contact stage keeps the rows of contacts at rest)."""
+        self._ready = False
+        if jds is self.jds and self.source is None:
+            return
+        self.jds = jds
         d, real, storage = 3 * len(jds.touched), self.real, self.storage
         blocks = self._read_source(jds.touched) if self.source is not None else jds.touched
         self.rows = storage.put("rows", blocks, ti.i32)

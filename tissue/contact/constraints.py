@@ -98,7 +98,8 @@ class ConstraintRows:
     Block row t is rows 3t, 3t+1, 3t+2: contact t's (n, t1, t2) for t < n_contacts, then each
     attachment's three axes. Entry e is the block of block row `block[e]` at node `node[e]` of
     soft body `body[e]` (`value[e]`, 3×3: the three rows' 1×3 entries there; a frictionless
-    contact's tangent rows are zero). A block row may hold two blocks at one node (they add)."""
+    contact's tangent rows are zero). A block row may hold two blocks at one node (they add).
+    `jacobian` builds all but q (empty there), `with_free_values` adds q."""
 
     n_rows: int
     n_contacts: int
@@ -108,6 +109,7 @@ class ConstraintRows:
     value: np.ndarray
     q: np.ndarray
     frames: np.ndarray           # (n_contacts, 3, 3) rows n, t1, t2
+    directions: np.ndarray       # (n_contacts, 3, 3) the rows' directions: frames, tangents zero where frictionless
 
     def body_matrix(self, body: int, n_nodes: int) -> sp.csr_matrix:
         """Body `body`'s block of H as a sparse (n_rows × 3 n_nodes) matrix."""
@@ -124,12 +126,18 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
 
     frictionless: (k,) bool; those contacts' tangent rows are zero (their reactions are zero
     whatever W says there)."""
+    return with_free_values(jacobian(contacts, attachments, frictionless), contacts, free, prev, attachments, time)
+
+
+def jacobian(contacts: Contacts, attachments=(), frictionless=None) -> ConstraintRows:
+    """H for the contacts and attachments (q left empty: `with_free_values`). It depends on the
+    contacts' carriers, weights, triangles and normals alone, not on positions or gaps, so the
+    contact stage keeps it while those stay the same (a body at rest)."""
     k = len(contacts)
     frames = tangent_frames(contacts.normal) if k else np.zeros((0, 3, 3))
     directions = frames
     if frictionless is not None and np.any(frictionless):
         directions = frames * np.where(np.asarray(frictionless)[:, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
-    moved = _displacements(free, prev)
     # The point's own blocks u_j d (weights 0 left out), then the other triangle's -w_j d.
     kk, jj = np.nonzero(contacts.own_weights != 0)
     soft = np.flatnonzero(contacts.soft)
@@ -140,15 +148,6 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
         body.append(np.repeat(contacts.other[soft], 3))
         node.append(contacts.triangle[soft].ravel())
         value.append(-contacts.weights[soft].reshape(-1)[:, None, None] * np.repeat(directions[soft], 3, axis=0))
-    # δ_free: the gap, and the relative displacement of the two material points along t1, t2.
-    disp = -contacts.other_motion
-    if k:
-        disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved(contacts.body, contacts.nodes))
-    if len(soft):
-        disp[soft] -= np.einsum("kj,kjc->kc", contacts.weights[soft], moved(contacts.other[soft], contacts.triangle[soft]))
-    q = np.einsum("kij,kj->ki", directions, disp)
-    q[:, 0] = contacts.gap
-    q = [q.ravel()]
     eye = np.eye(3)[None] if attachments else None
     for a, att in enumerate(attachments):
         t = k + a
@@ -156,21 +155,44 @@ def build_rows(contacts: Contacts, free, prev, attachments=(), time: float = 0.0
         body.append(np.array([att.body]))
         node.append(np.array([att.node]))
         value.append(eye)
-        p = free[att.body][att.node]
-        if att.other_body is None:
-            target = att.target(time)
-        else:
+        if att.other_body is not None:
             w = np.asarray(att.weights, dtype=np.float64)
             nodes = np.asarray(att.other_nodes)
-            target = w @ free[att.other_body][nodes]
             block.append(np.full(len(nodes), t))
             body.append(np.full(len(nodes), att.other_body))
             node.append(nodes)
             value.append(-w[:, None, None] * eye)
-        q.append(p - target)
     block, body, node = (_joined(a).astype(np.int32, copy=False) for a in (block, body, node))
     return ConstraintRows(n_rows=3 * k + 3 * len(attachments), n_contacts=k, block=block, body=body, node=node,
-                          value=_joined(value).reshape(-1, 3, 3), q=_joined(q), frames=frames)
+                          value=_joined(value).reshape(-1, 3, 3), q=np.zeros(0), frames=frames, directions=directions)
+
+
+def with_free_values(rows: ConstraintRows, contacts: Contacts, free, prev, attachments=(),
+                     time: float = 0.0) -> ConstraintRows:
+    """`rows` (the Jacobian of these contacts and attachments, from `jacobian`) with δ_free: the
+    gap, and the relative displacement of the two material points along t1, t2; each
+    attachment's position error. free/prev: per body (n, 3) positions after the free motion and
+    at the start of the step."""
+    k = rows.n_contacts
+    moved = _displacements(free, prev)
+    soft = np.flatnonzero(contacts.soft)
+    disp = -contacts.other_motion
+    if k:
+        disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved(contacts.body, contacts.nodes))
+    if len(soft):
+        disp[soft] -= np.einsum("kj,kjc->kc", contacts.weights[soft], moved(contacts.other[soft], contacts.triangle[soft]))
+    q = np.einsum("kij,kj->ki", rows.directions, disp)
+    q[:, 0] = contacts.gap
+    q = [q.ravel()]
+    for att in attachments:
+        p = free[att.body][att.node]
+        if att.other_body is None:
+            target = att.target(time)
+        else:
+            target = np.asarray(att.weights, dtype=np.float64) @ free[att.other_body][np.asarray(att.other_nodes)]
+        q.append(p - target)
+    return ConstraintRows(rows.n_rows, k, rows.block, rows.body, rows.node, rows.value, _joined(q), rows.frames,
+                          rows.directions)
 
 
 def _joined(parts: list) -> np.ndarray:

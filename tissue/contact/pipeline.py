@@ -1,7 +1,9 @@
 """The contact stage of a step, run after every soft body's free motion (paper §3, DESIGN step 2-5):
 
   1. detection    surface vertices within the contact distance of obstacles / other bodies
-  2. constraints  H (normal and two tangents per contact, three rows per attachment), δ_free, JDS
+  2. constraints  H (normal and two tangents per contact, three rows per attachment), δ_free, JDS;
+                  H, μ and the JDS are last step's while the contacts are the same ones, on the
+                  same triangles at the same weights and normals (a body at rest), δ_free anew
   3. compliance   nodal rotations and W = Σ h (H R) A₀⁻¹ (H R)ᵀ ("warped"), kept as its factors
                   (FactoredDelassus: each body's H R and A₀⁻¹ among the nodes its rows touch; W is
                   formed only when asked for, or with attachments), or h H A⁻¹ Hᵀ ("exact")
@@ -45,7 +47,7 @@ from ..mesh import boundary_faces
 from ..options import Options, require, validate
 from ..stats import Stats
 from .compliance import ExactCompliance, WarpedCompliance
-from .constraints import Attachment, ConstraintRows, JaggedDiagonal, build_rows, offsets
+from .constraints import Attachment, ConstraintRows, JaggedDiagonal, jacobian, offsets, with_free_values
 from .detection import Contacts, Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver, dense_buffer
@@ -207,6 +209,7 @@ class ContactStage:
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
         self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
+        self._kept = None                       # the last rows' Jacobian (_jacobian)
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
         self._real, self._np = real, (np.float64 if real == ti.f64 else np.float32)
@@ -234,6 +237,7 @@ class ContactStage:
         self._held_nodes()
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
+        self._kept = None
 
     def follow_compliance(self, body: int, compliance) -> None:
         """Take body `body`'s rest compliance from a tissue.cutting.CuttingCompliance (kept exact
@@ -256,14 +260,19 @@ class ContactStage:
         """How many times the scratch of the stage's kernels has grown (tissue.contact.storage)."""
         return sum(s.growths for s in self._storages)
 
-    def _friction(self, contacts: Contacts) -> np.ndarray:
+    def _given_friction(self) -> tuple:
+        """The friction coefficients as given (any of them may be set anew between steps): the
+        default, the bodies' and the obstacles'."""
+        return (self.settings.friction, tuple(b.friction for b in self.bodies), tuple(o.friction for o in self.obstacles))
+
+    def _friction(self, contacts: Contacts, given: tuple | None = None) -> np.ndarray:
         """μ per contact: soft–soft the smaller of the two bodies' (the default unless both say);
-        soft–rigid the obstacle's, else the body's, else the default."""
-        default = self.settings.friction
-        given = (tuple(b.friction for b in self.bodies), tuple(o.friction for o in self.obstacles))
-        if self._given_mu is None or self._given_mu[0] != given:     # (bodies' and obstacles' μ may be set anew)
-            body_mu = np.array([np.nan if mu is None else mu for mu in given[0]])
-            obstacle_mu = np.array([np.nan if mu is None else mu for mu in given[1]] or [np.nan])
+        soft–rigid the obstacle's, else the body's, else the default. given: _given_friction()."""
+        given = self._given_friction() if given is None else given
+        default = given[0]
+        if self._given_mu is None or self._given_mu[0] != given:
+            body_mu = np.array([np.nan if mu is None else mu for mu in given[1]])
+            obstacle_mu = np.array([np.nan if mu is None else mu for mu in given[2]] or [np.nan])
             self._given_mu = (given, body_mu, obstacle_mu)
         _, body_mu, obstacle_mu = self._given_mu
         own = body_mu[contacts.body]
@@ -347,16 +356,13 @@ class ContactStage:
                         contact_storage_growths=self.storage_growths)
             return self.last
 
+        keys = contacts.keys()
         with stats.stage("constraints"):
             free = [x[:, :3] for x in self.detector.state]     # read by the detection's launches
             prev = [x[:, 3:] for x in self.detector.state]
-            mu = self._friction(contacts)
-            rows = build_rows(contacts, free, prev, self.attachments, self.time, frictionless=mu == 0)
-            if self.jaws:
-                rows = self._with_jaws(rows, contacts, mu == 0)
-            touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
-            if s.compliance == "warped":
-                jds = {b: JaggedDiagonal(rows, b) for b in touched}
+            kept = self._jacobian(contacts, keys)
+            rows = with_free_values(kept.rows, contacts, free, prev, self.attachments, self.time)
+            mu, touched, jds = kept.mu, kept.touched, kept.jds
 
         with stats.stage("compliance"):
             self._flip = 1 - self._flip
@@ -378,7 +384,6 @@ class ContactStage:
                     c.prepare(rows, b)
                     c.add_to(W)
 
-        keys = contacts.keys()
         with stats.stage("lcp"):
             lam, info = self._solve(W, rows, contacts, mu, keys)
 
@@ -396,6 +401,23 @@ class ContactStage:
                     penetration=float(max(0.0, -normal.min())) if nc else 0.0,
                     contact_storage_growths=self.storage_growths)
         return self.last
+
+    def _jacobian(self, contacts: Contacts, keys: np.ndarray) -> "_KeptRows":
+        """The rows' Jacobian, μ, the bodies the rows touch and their JDS: last step's when the
+        contacts are the same ones at the same places (`_KeptRows.same`: a body at rest), else
+        built anew."""
+        given = self._given_friction()
+        kept = self._kept
+        if kept is not None and kept.same(contacts, keys, given):
+            return kept
+        mu = self._friction(contacts, given)
+        rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
+        if self.jaws:
+            rows = self._with_jaws(rows, contacts, mu == 0)
+        touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
+        jds = {b: JaggedDiagonal(rows, b) for b in touched} if self.settings.compliance == "warped" else None
+        self._kept = _KeptRows(contacts, keys, given, rows, mu, touched, jds)
+        return self._kept
 
     def _with_jaws(self, rows: ConstraintRows, contacts: Contacts, frictionless: np.ndarray) -> ConstraintRows:
         """The rows with their blocks on the jaws they touch: minus the row directions (a jaw's
@@ -513,6 +535,35 @@ class ContactStage:
         if rows.n_rows > m:
             lam[m:] = -scipy.linalg.cho_solve(bb, q[m:] + W[m:, :m] @ lam[:m])
         return lam, info
+
+
+@dataclass
+class _KeptRows:
+    """The constraint rows' Jacobian of one step's contacts, kept for the next step (see
+    ContactStage._jacobian), and what it was built from."""
+
+    contacts: Contacts
+    keys: np.ndarray
+    given_friction: tuple
+    rows: ConstraintRows          # q empty: the step's δ_free is added to it (with_free_values)
+    mu: np.ndarray
+    touched: list
+    jds: dict | None
+
+    def same(self, contacts: Contacts, keys: np.ndarray, given_friction: tuple) -> bool:
+        """Whether `contacts` give this Jacobian: the same contact points (keys: body, sample,
+        kind, other) on the same nodes and triangles, at the same weights and normals, bit for
+        bit, and the same friction coefficients given."""
+        kept = self.contacts
+        return (given_friction == self.given_friction and np.array_equal(keys, self.keys)
+                and np.array_equal(contacts.nodes, kept.nodes) and np.array_equal(contacts.triangle, kept.triangle)
+                and _same_bits(contacts.own_weights, kept.own_weights) and _same_bits(contacts.weights, kept.weights)
+                and _same_bits(contacts.normal, kept.normal))
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """a and b hold the same numbers bit for bit (np.array_equal takes -0.0 for 0.0)."""
+    return a.dtype == b.dtype and np.array_equal(a.view(f"u{a.itemsize}"), b.view(f"u{b.itemsize}"))
 
 
 class _Edited:
