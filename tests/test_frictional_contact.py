@@ -404,6 +404,41 @@ def test_kept_storage_equals_fresh_solvers(solve, layout, method, reduce):
     assert packs[2][0] is packs[1][0] and packs[2][1] is packs[1][1]     # 25 after 90: no growth
 
 
+@pytest.mark.parametrize("method, reduce", [("auto", False), ("gauss_seidel", True), ("jacobi", False)])
+def test_renewed_solver_equals_fresh_solvers(solve, method, reduce):
+    """One solver renewed from problem to problem (as the contact stage keeps one a run) against a
+    fresh solver per problem: 40, 90 contacts, 90 again (other W, q and μ: its sizes are not
+    written again), 25, 150 and 60, factored and dense in turn, warm-started or not; before the
+    third, another solver solves a problem of 70 contacts on the same storage (so the renewed one
+    writes its sizes again). Reactions, velocities, iterations and residual equal bit for bit."""
+    from tissue.contact import FrictionalContactSolver
+    from tissue.contact.storage import Storage
+
+    rng = np.random.default_rng(12)
+    kept, renewed = Storage(host=True), None
+    for k, nc in enumerate((40, 90, 90, 25, 150, 60)):
+        W, F, q, mu = two_body_factored_problem(nc, nc // 2 + 10, rng)
+        q[0::3] = np.where(rng.random(nc) < 0.3, -rng.random(nc), 0.05 + rng.random(nc))
+        op = F if k % 2 == 0 else W
+        rn = rng.random(nc)                                  # a start inside the cones
+        r0 = np.column_stack([rn, 0.3 * (mu * rn)[:, None] * rng.uniform(-1, 1, (nc, 2))]).ravel() if k % 3 else None
+        if k == 2:
+            W2, _, q2, mu2 = two_body_factored_problem(70, 45, rng)
+            FrictionalContactSolver(W2, mu2, method, reduce=reduce, storage=kept).solve(q2, 1e-8, 3000)
+        if renewed is None:
+            renewed = FrictionalContactSolver(op, mu, method, reduce=reduce, storage=kept)
+        else:
+            assert renewed.renew(op, mu, reduce) is renewed
+        fresh = FrictionalContactSolver(op, mu, method, reduce=reduce)
+        tol, cap = (1e-8, 3000) if method != "jacobi" else (1e-5, 50000)
+        r, info = renewed.solve(q, tol, cap, r0=r0)
+        r_f, info_f = fresh.solve(q, tol, cap, r0=r0)
+        assert info.converged, (nc, info)
+        np.testing.assert_array_equal(r, r_f, err_msg=f"{nc} contacts: r")
+        np.testing.assert_array_equal(renewed.u, fresh.u, err_msg=f"{nc} contacts: u")
+        assert (info.iterations, info.residual) == (info_f.iterations, info_f.residual), nc
+
+
 def test_jacobi_safeguard_recovers_from_too_large_omega(solve):
     from tissue.contact import FrictionalContactSolver
     W, q, mu = rigid_bodies_problem(3, 30, np.random.default_rng(0))   # strongly coupled contacts

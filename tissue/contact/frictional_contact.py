@@ -108,7 +108,8 @@ def _diagonal_blocks(W, n):
 
 class FrictionalContactSolver:
     """W and mu validated and uploaded once; solve() may then run for many q (as the haptic loop
-    re-solves with a new free velocity between two simulation steps)."""
+    re-solves with a new free velocity between two simulation steps); renew() makes it the solver
+    of another problem (the contact stage keeps one solver a run, renewed every step)."""
 
     def __init__(self, W, mu, method: str = "gauss_seidel", layout: str = "auto", omega=None, check: bool = True,
                  anderson: int = ANDERSON_WINDOW, reduce: bool = False, storage: Storage | None = None):
@@ -119,7 +120,7 @@ class FrictionalContactSolver:
         3×3 eigenproblem per contact), and the finiteness and sign checks of μ, q and r0: for a
         caller that builds the problem itself (the contact stage, which checks the reactions).
         storage: where the device arrays and their argpacks are kept (Storage(host=True)), for a
-        caller that makes a solver per problem (the contact stage, every step): a solve on kept
+        caller that solves many problems (the contact stage, every step): a solve on kept
         arrays sets no argument again (its launch replays, tissue.launch). The arrays are this
         solver's until the next solver on the same storage is made. By default, a storage of
         its own."""
@@ -129,6 +130,19 @@ class FrictionalContactSolver:
             raise TissueError(f"layout: unknown value {layout!r}; expected one of {', '.join(LAYOUTS)}")
         if int(anderson) != anderson or anderson < 0:
             raise TissueError(f"anderson: must be a non-negative integer, got {anderson!r}")
+        self.method, self.check, self._layout, self._omega = method, check, layout, omega
+        self.anderson = int(anderson) if method != "jacobi" else 0
+        self.storage = Storage(host=True) if storage is None else storage
+        self._room = 0                  # contacts the problem's kept arrays hold (see _upload)
+        self._uploaded = (-1, None)     # n and W's (layout, dims, scale) as last uploaded
+        self.renew(W, mu, reduce)
+
+    def renew(self, W, mu, reduce: bool = False) -> "FrictionalContactSolver":
+        """This solver (its method, layout, checks and storage) for the problem (W, μ), uploaded
+        into the arrays it keeps, without the set-up of a new solver: the arrays are looked up
+        and their argpacks checked only after a growth, the sizes written when the number of
+        contacts changed. Returns the solver."""
+        check = self.check
         factored = isinstance(W, FactoredDelassus)
         if factored:
             if check:
@@ -165,18 +179,18 @@ class FrictionalContactSolver:
             if len(bad):
                 raise TissueError(f"W: diagonal 3x3 block of contact {bad[0]} is not positive definite"
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
-        self.n, self.W, self.mu, self.method, self._D_host, self.check = n, W, mu, method, D, check
-        self.anderson = int(anderson) if method != "jacobi" else 0
-        self.reduce = bool(reduce) and method == "gauss_seidel"      # (auto sweeps the whole problem)
+        self.n, self.W, self.mu, self._D_host = n, W, mu, D
+        self.reduce = bool(reduce) and self.method == "gauss_seidel"      # (auto sweeps the whole problem)
+        layout = self._layout
         dense = layout == "dense" or (layout == "auto" and (
             not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
         self.layout = FACTORED if factored else (DENSE if dense else CSR)
         # Jacobi's starting relaxation factor (given, or estimated from the spectrum of D^-1 W).
-        self.omega = float(omega) if omega is not None else (
-            self._initial_omega(D) if method == "jacobi" else 1.0)
-        self.storage = Storage(host=True) if storage is None else storage
+        self.omega = float(self._omega) if self._omega is not None else (
+            self._initial_omega(D) if self.method == "jacobi" else 1.0)
         if n:
             self._upload(D)
+        return self
 
     @property
     def dense(self) -> bool:
@@ -198,18 +212,28 @@ class FrictionalContactSolver:
 
     def _upload(self, D):
         """W, μ and the problem's arrays into the storage's kept arrays, and the argpacks over them
-        (kept with it: built again only after a growth)."""
+        (kept with it: built again only after a growth). The problem's arrays hold `_room`
+        contacts; within it, and while no other solver wrote the storage, the problem's sizes
+        and W's scalars are written only when they changed (_uploaded)."""
         real = backend.current().real
-        self._npr = npr = np.float64 if real == ti.f64 else np.float32
+        self._npr = np.float64 if real == ti.f64 else np.float32
         st, n, m, window = self.storage, self.n, 3 * self.n, self.anderson
-        q = st.get("q", m, real)
-        hist, gram = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
-        P = dict(q=q, mu=st.put("mu", self.mu, real), r=st.get("r", m, real), u=st.get("u", m, real),
-                 hist=st.get("hist", hist[0], real, hist[1:]), gram=st.get("gram", gram[0], real, gram[1:]),
-                 stats=st.get("stats", 3, real), sizes=st.put("sizes", np.array([n, window, 0, 0]), ti.i32),
-                 reals=st.get("reals", 1, real))
-        self._P = st.pack("problem", PROBLEM, **P)
-        self._q, self._r, self._u = P["q"], P["r"], P["u"]
+        if not st.claim(self):
+            self._room, self._uploaded = 0, (-1, None)
+        size, kept_W = self._uploaded
+        if n > self._room:
+            q = st.get("q", m, real)
+            room = self._room = q.shape[0] // 3
+            hist, gram = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
+            P = dict(q=q, mu=st.get("mu", room, real), r=st.get("r", 3 * room, real), u=st.get("u", 3 * room, real),
+                     hist=st.get("hist", hist[0], real, hist[1:]), gram=st.get("gram", gram[0], real, gram[1:]),
+                     stats=st.get("stats", 3, real), sizes=st.get("sizes", 4, ti.i32), reals=st.get("reals", 1, real))
+            self._P = st.pack("problem", PROBLEM, **P)
+            self._q, self._r, self._u = P["q"], P["r"], P["u"]
+            size = None
+        st.put("mu", self.mu, real)
+        if n != size:
+            st.put("sizes", np.array([n, window, 0, 0]), ti.i32)
         # W in its layout (see tissue.contact.layouts), the factored layout's y and z (one element
         # elsewhere), its sizes and its scale.
         none = st.get("none", 1, real)
@@ -232,9 +256,13 @@ class FrictionalContactSolver:
             abc = (st.put("index", W.packed(), ti.i32), st.put("blocks", W.blocks, real, (3, 3)), st.put("Q", W.Q, real))
             y, z = (st.get(name, max(1, int(W.y_offset[-1])), real) for name in ("y", "z"))
             dims, scale = [len(W.blocks), len(W.y_offset) - 1], float(W.scale)
+        if (self.layout, dims, scale) != kept_W:
+            st.put("dims", np.array(dims), ti.i32)
+            st.put("scale", np.array([scale]), real)
         self._W = st.pack(f"delassus {self.layout}", DELASSUS, a=abc[0], b=abc[1], c=abc[2],
-                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, dims=st.put("dims", np.array(dims), ti.i32),
-                          scale=st.put("scale", np.array([scale]), real))
+                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, dims=st.get("dims", 2, ti.i32),
+                          scale=st.get("scale", 1, real))
+        self._uploaded = (n, (self.layout, dims, scale))
 
     def _read(self, array) -> np.ndarray:
         """The problem's first 3n entries of one of its arrays (r, u), in float64."""

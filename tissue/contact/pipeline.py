@@ -203,6 +203,7 @@ class ContactStage:
         kind = WarpedCompliance if settings.compliance == "warped" else ExactCompliance
         self.compliance = [kind(b.solver) for b in self.bodies] + self.jaws
         self._lcp = Storage(host=True)          # the frictional problem's arrays, kept between steps
+        self._solver = None                     # its solver, renewed each step
         self._storages = [self.detector.storage, self._lcp]
         self._storages += [c.storage for c in self.compliance if isinstance(c, WarpedCompliance)]
         self.time = 0.0
@@ -523,8 +524,13 @@ class ContactStage:
                 pos = np.minimum(pos, len(self._warm_keys) - 1)
                 hit = self._warm_keys[pos] == keys
                 warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
-            solver = FrictionalContactSolver(scaled, mu, s.method, check=False, reduce=self._last_sweeps > REDUCE_ABOVE,
-                                             storage=self._lcp)
+            reduce = self._last_sweeps > REDUCE_ABOVE
+            solver = self._solver
+            if solver is None or solver.method != s.method:
+                solver = self._solver = FrictionalContactSolver(scaled, mu, s.method, check=False, reduce=reduce,
+                                                                storage=self._lcp)
+            else:
+                solver.renew(scaled, mu, reduce)
             r, info = solver.solve(qc, s.tolerance, s.max_iterations, r0=scale * warm.ravel())
             self._last_sweeps = info.iterations
             if not np.all(np.isfinite(r)):      # (W is not checked on the way in: it is ours)

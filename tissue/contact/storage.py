@@ -47,10 +47,17 @@ class Storage:
         self._views = {}
         self._packs = {}
         self._children = {}
+        self._owner = None
 
     @property
     def growths(self) -> int:
         return self._growths + sum(child.growths for child in self._children.values())
+
+    def claim(self, owner) -> bool:
+        """`owner` (a solver) is to write these arrays: whether it was the last to claim them, so
+        that what it wrote there before is still there."""
+        was, self._owner = self._owner is owner, owner
+        return was
 
     def child(self, name) -> "Storage":
         """A storage of the same kind kept in this one under `name` (a nested solver's arrays);
