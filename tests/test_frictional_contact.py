@@ -340,6 +340,24 @@ def test_factored_delassus_matches_dense(solve, method):
     np.testing.assert_allclose(rf, rd, atol=10 * tol * (1 + np.linalg.norm(q)))
 
 
+def test_factored_blocks_equal_the_formed_W(solve):
+    """FactoredDelassus.block between sets of contacts (unsorted, overlapping, one contact, all)
+    from one operator, whose P is built at the first call and reused: W formed here among them
+    (within 1e-12 of its largest entry), and the same bits as a new operator of the same factors
+    serving that block first."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(8)
+    W, F, q, mu = two_body_factored_problem(60, 40, rng)
+    dofs = lambda c: (3 * np.asarray(c)[:, None] + np.arange(3)).ravel()
+    sets = [rng.choice(60, 25, replace=False), rng.choice(60, 40, replace=False), np.array([7]), np.arange(60)]
+    for rows in sets:
+        for cols in sets:
+            B = F.block(rows, cols)
+            np.testing.assert_allclose(B, W[np.ix_(dofs(rows), dofs(cols))], rtol=0, atol=1e-12 * np.abs(W).max())
+            assert replace(F).block(rows, cols).tobytes() == B.tobytes()
+
+
 @pytest.mark.parametrize("layout", ["factored", "dense"])
 def test_contacts_in_play_solve_the_whole_problem(solve, layout):
     """Most contacts apart (q_n > 0), as within an alarm distance: Gauss-Seidel on the contacts in

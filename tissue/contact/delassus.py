@@ -8,6 +8,7 @@ blocks and dense blocks among a few contacts, from the factors.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -52,16 +53,16 @@ class FactoredDelassus:
         """[ptr | col | segment | y_offset | q_offset], int32: the kernels' index argument."""
         return np.concatenate([self.ptr, self.col, self.segment, self.y_offset, self.q_offset]).astype(np.int32)
 
-    def _block_rows(self) -> np.ndarray:
-        """The contact of each block."""
-        return np.repeat(np.arange(self.n), np.diff(self.ptr))
+    @cached_property
+    def _structure(self) -> tuple[np.ndarray, np.ndarray]:
+        """The contact of each block, and the three dofs (columns) of each block (built once)."""
+        return np.repeat(np.arange(self.n), np.diff(self.ptr)), self.col[:, None] + np.arange(3)
 
     def __matmul__(self, r):
         """W r from the factors: z = Pᵀ r (the blocks of contacts with r ≠ 0), y = Q z per
         segment, then P y."""
         R = np.asarray(r, dtype=np.float64).reshape(-1, 3)
-        row = self._block_rows()
-        dofs = self.col[:, None] + np.arange(3)
+        row, dofs = self._structure
         pushed = np.flatnonzero(R[row].any(axis=1))
         z = np.bincount(dofs[pushed].ravel(), np.einsum("eab,ea->eb", self.blocks[pushed], R[row[pushed]]).ravel(),
                         minlength=self.y_offset[-1])
@@ -75,21 +76,32 @@ class FactoredDelassus:
         d = self.y_offset[s + 1] - self.y_offset[s]
         return self.Q[self.q_offset[s]:self.q_offset[s] + d * d].reshape(d, d)
 
+    @cached_property
+    def _by_segment(self) -> dict:
+        """Per segment s, its part of P (3n × the segment's dofs, CSR, indices sorted, explicit
+        zeros kept), built once: `_P` takes rows of it."""
+        row, dofs = self._structure
+        out = {}
+        for s in np.unique(self.segment):
+            on = self.segment == s
+            ii = np.broadcast_to((3 * row[on])[:, None, None] + np.arange(3)[:, None], (on.sum(), 3, 3))
+            jj = np.broadcast_to((dofs[on] - self.y_offset[s])[:, None, :], (on.sum(), 3, 3))
+            d = self.y_offset[s + 1] - self.y_offset[s]
+            out[s] = sp.csr_matrix((self.blocks[on].ravel(), (ii.ravel(), jj.ravel())), shape=(3 * self.n, d))
+        return out
+
     def _P(self, contacts):
         """The blocks of P of `contacts` (ids) in segment s, per segment: {s: (P sparse (3k ×
-        3|nodes|), nodes: the block columns used, P's columns in order)}."""
-        contacts = np.asarray(contacts, dtype=np.int64)
-        counts = self.ptr[contacts + 1] - self.ptr[contacts]
-        e = np.repeat(self.ptr[contacts] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(counts.sum())
-        row, col, seg = np.repeat(np.arange(len(contacts)), counts), self.col[e], self.segment[e]
+        the dofs used), the segment's dofs used, in order)}: rows of `_by_segment`, its columns
+        renumbered among the dofs used."""
+        dofs = (3 * np.asarray(contacts, dtype=np.int64)[:, None] + np.arange(3)).ravel()
         out = {}
-        for s in np.unique(seg):
-            on = seg == s
-            nodes, at = np.unique(col[on], return_inverse=True)
-            ii = np.broadcast_to((3 * row[on])[:, None, None] + np.arange(3)[:, None], (on.sum(), 3, 3))
-            jj = np.broadcast_to((3 * at)[:, None, None] + np.arange(3), (on.sum(), 3, 3))
-            out[s] = (sp.csr_matrix((self.blocks[e[on]].ravel(), (ii.ravel(), jj.ravel())),
-                                    shape=(3 * len(contacts), 3 * len(nodes))), nodes)
+        for s, P in self._by_segment.items():
+            P = P[dofs]
+            if P.nnz:
+                used = np.unique(P.indices)
+                out[s] = (sp.csr_matrix((P.data, np.searchsorted(used, P.indices), P.indptr),
+                                        shape=(len(dofs), len(used))), used)
         return out
 
     def block(self, rows, cols) -> np.ndarray:
@@ -100,9 +112,7 @@ class FactoredDelassus:
         W = np.zeros((3 * len(rows), 3 * len(cols)))
         for s in set(Pr) & set(Pc):
             (P, a), (R, b) = Pr[s], Pc[s]
-            y0 = self.y_offset[s]
-            Q = self._segment_Q(s)[np.ix_((a[:, None] - y0 + np.arange(3)).ravel(), (b[:, None] - y0 + np.arange(3)).ravel())]
-            W += (R @ (P @ Q).T).T
+            W += (R @ (P @ self._segment_Q(s)[np.ix_(a, b)]).T).T
         return self.scale * W
 
     def restricted(self, contacts) -> np.ndarray:
