@@ -20,7 +20,6 @@ import statistics
 import sys
 import time
 import traceback
-from importlib import metadata
 from pathlib import Path
 
 # Taichi prints a banner when imported and a line when initialised; the command reports the
@@ -189,6 +188,8 @@ def cmd_show(args) -> int:
 
 
 def _version(package: str) -> str:
+    from importlib import metadata      # here: `tissue run` need not import it
+
     try:
         return metadata.version(package)
     except metadata.PackageNotFoundError:
