@@ -10,7 +10,9 @@ warm start pays in every process). Per kernel instance, in CPU seconds of the pr
 LLVM module, or the cache's copy) and the machine code (LLVM's JIT at the first launch); and two
 measures of the kernel's size, counted while its front end runs: the `ti.func` call sites inlined
 into it (Taichi transforms a ti.func's body again at each one) and the Python AST nodes
-transformed. Writes bench/results/NAME.json.
+transformed; and, from the offline cache the cold run wrote (its modules are LLVM IR text), the
+LLVM instructions of the instance's module: what the JIT turns into machine code in every process.
+Writes bench/results/NAME.json.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -26,6 +29,8 @@ from pathlib import Path
 from bench.common import ROOT, machine, print_machine, write_results
 
 SCENES = ("incline", "liver_press")
+# A function of a cached module: Taichi names it KERNEL_cID_INSTANCE_kernel_TASK_... .
+DEFINE = re.compile(r"^define [^@]*@(?P<kernel>.+?)_c\d+_(?P<instance>\d+)_kernel_")
 
 
 def _describe(value) -> str:
@@ -78,6 +83,42 @@ def child(scene: str, steps: int, out: Path, result: Path) -> None:
     result.write_text(json.dumps(rows))
 
 
+def llvm_instructions(cache: Path) -> dict[str, list[int]]:
+    """Per kernel name, the LLVM instructions of each of its instances' modules (one file each,
+    its tasks and the runtime functions they call) in the offline cache `cache` of one process, in
+    the order Taichi numbered the instances (its compilation order)."""
+    counts: dict[tuple[str, int], int] = {}
+    for module in cache.glob("*.tic"):
+        lines = module.read_bytes().decode("utf-8", "replace").splitlines()
+        names = [match for match in map(DEFINE.match, lines) if match]
+        if not names:
+            continue
+        inside, instructions = False, 0
+        for line in lines:
+            if line.startswith("define "):
+                inside = True
+            elif line == "}":
+                inside = False
+            elif inside and line.startswith("  ") and not line.lstrip().startswith(";"):
+                instructions += 1
+        counts[names[0]["kernel"], int(names[0]["instance"])] = instructions
+    by_kernel: dict[str, list[int]] = {}
+    for (kernel, _), count in sorted(counts.items()):
+        by_kernel.setdefault(kernel, []).append(count)
+    return by_kernel
+
+
+def with_llvm_instructions(rows: list[dict], by_kernel: dict[str, list[int]]) -> list[dict]:
+    """Each row (kernel instances in compilation order) with its module's LLVM instructions (None
+    where the cache holds fewer instances of its kernel)."""
+    seen: dict[str, int] = {}
+    for row in rows:
+        i = seen[row["kernel"]] = seen.get(row["kernel"], -1) + 1
+        counts = by_kernel.get(row["kernel"], [])
+        row["llvm_instructions"] = counts[i] if i < len(counts) else None
+    return rows
+
+
 def run(scene: str, steps: int, caches: Path) -> list[dict]:
     result = caches / "kernels.json"
     env = dict(os.environ, TI_OFFLINE_CACHE_FILE_PATH=str(caches / "taichi"), TISSUE_CACHE=str(caches / "tissue"))
@@ -94,10 +135,10 @@ def print_rows(scene: str, caches: str, rows: list[dict]) -> None:
           f"{sum(r['frontend_s'] for r in rows):.2f}, module {sum(r['module_s'] for r in rows):.2f}, "
           f"machine code {sum(r['machine_code_s'] for r in rows):.2f}; {sum(r['calls'] for r in rows)} call sites, "
           f"{sum(r['nodes'] for r in rows)} AST nodes")
-    print(f"{'kernel':<28} {'front end':>9} {'module':>7} {'machine':>7} {'calls':>6} {'nodes':>7}  variant")
+    print(f"{'kernel':<28} {'front end':>9} {'module':>7} {'machine':>7} {'calls':>6} {'nodes':>7} {'LLVM':>7}  variant")
     for r in sorted(rows, key=lambda r: -(r["frontend_s"] + r["machine_code_s"])):
         print(f"{r['kernel']:<28} {r['frontend_s']:9.3f} {r['module_s']:7.3f} {r['machine_code_s']:7.3f} "
-              f"{r['calls']:6d} {r['nodes']:7d}  {r['variant'][:60]}")
+              f"{r['calls']:6d} {r['nodes']:7d} {r['llvm_instructions'] or 0:7d}  {r['variant'][:60]}")
 
 
 def main(argv=None) -> None:
@@ -123,6 +164,9 @@ def main(argv=None) -> None:
     for scene in args.scenes:
         with tempfile.TemporaryDirectory(prefix="tissue-kernels-") as tmp:
             results[scene] = {caches: run(scene, args.steps, Path(tmp)) for caches in ("cold", "cached")}
+            by_kernel = llvm_instructions(Path(tmp) / "taichi")
+            for rows in results[scene].values():
+                with_llvm_instructions(rows, by_kernel)
         for caches, rows in results[scene].items():
             print_rows(scene, caches, rows)
     write_results(args.name, dict(machine=info, load_average_before_after=[[round(x, 2) for x in load], [round(x, 2) for x in os.getloadavg()]],

@@ -1,7 +1,7 @@
 """Start-up cost of `tissue run`: the command's wall time from empty caches and from caches filled by others.
 
     python -m bench.startup [--scenes incline liver_press liver beam] [--steps 10] [--arch cpu]
-    python -m bench.startup --versus COMMIT [--rounds 3] [--scenes ...]
+    python -m bench.startup --versus COMMIT [--rounds 3] [--scenes ...] [--out NAME]
 
 Each measurement runs `tissue run NAME --no-render --steps N --out TMP` as a subprocess, with the
 Taichi offline cache (TI_OFFLINE_CACHE_FILE_PATH) and the mesh cache (TISSUE_CACHE) in folders of
@@ -20,12 +20,12 @@ imports, Taichi's start, output).
 Also, in this process: a topology edit of a live 3,960-tetrahedron body (remove 10 elements, add
 them back: `BodyModel.remove_elements` / `add_elements`, with the solver's assembled blocks
 following), its median time over repetitions and the kernels it compiled (none expected).
-Writes bench/results/startup.json.
+Writes bench/results/startup.json (or NAME.json with --out NAME).
 
 --versus COMMIT: each scene's cold, warm and again runs, as above, by this checkout and by COMMIT
 (a temporary git worktree), alternately for --rounds rounds, each run with caches of its own;
 medians of the wall, of the run's CPU seconds (user + system, all threads: what a loaded machine
-inflates least) and of its split. Writes bench/results/startup_versus.json.
+inflates least) and of its split. Writes bench/results/startup_versus.json (or NAME.json).
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def edit_timing(repeats: int = 50) -> dict:
                 add_ms=round(1e3 * float(np.median(adding[2:])), 3), kernels_compiled=compilation.count() - start)
 
 
-def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, info: dict) -> None:
+def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, info: dict, out: str) -> None:
     """Each scene's cold, warm and again runs by this checkout and by `other`, alternately (see the docstring)."""
     import numpy as np
 
@@ -139,7 +139,7 @@ def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, in
         for caches, r in by_caches.items():
             print(f"{scene:<12} {caches:<6} {r['this']['wall_s']:12.1f} {r['other']['wall_s']:9.1f} "
                   f"{r['this']['cpu_s']:12.1f} {r['other']['cpu_s']:9.1f}")
-    write_results("startup_versus", dict(machine=info, other=other, rounds=rounds, steps=steps,
+    write_results(out, dict(machine=info, other=other, rounds=rounds, steps=steps,
                                          load_average_before_after=[[round(x, 2) for x in load],
                                                                     [round(x, 2) for x in os.getloadavg()]],
                                          scenes=results, runs=runs))
@@ -152,6 +152,7 @@ def main(argv=None) -> None:
     parser.add_argument("--arch", default=os.environ.get("TISSUE_ARCH", "cpu"))
     parser.add_argument("--versus", metavar="COMMIT", help="the again runs, alternately with COMMIT's")
     parser.add_argument("--rounds", type=int, default=3, help="rounds of --versus (default 3)")
+    parser.add_argument("--out", help="the JSON's name under bench/results (default startup, or startup_versus)")
     args = parser.parse_args(argv)
 
     from tissue import backend
@@ -160,7 +161,7 @@ def main(argv=None) -> None:
     info = machine()
     print_machine(info)
     if args.versus:
-        versus(args.versus, args.scenes, args.rounds, args.steps, args.arch, info)
+        versus(args.versus, args.scenes, args.rounds, args.steps, args.arch, info, args.out or "startup_versus")
         return
     print(f"{'scene':<12} {'caches':<6} {'wall s':>7} {'mesh s':>7} {'compile s':>9} {'of it JIT':>9} {'kernels':>7} "
           f"{'simulate s':>10} {'other s':>7}")
@@ -174,7 +175,7 @@ def main(argv=None) -> None:
             print(f"{row['scene']:<12} {row['caches']:<6} {row['wall_s']:7.1f} {row['mesh_s']:7.2f} "
                   f"{row['compile_s']:9.1f} {row['machine_code_s']:9.1f} {row['kernels']:7d} {row['simulate_s']:10.2f} {row['other_s']:7.1f}",
                   flush=True)
-    write_results("startup", dict(machine=info, steps=args.steps, fillers=[" ".join(f) for f in FILLERS],
+    write_results(args.out or "startup", dict(machine=info, steps=args.steps, fillers=[" ".join(f) for f in FILLERS],
                                   runs=rows, topology_edit=edit))
 
 

@@ -130,10 +130,23 @@ def test_no_render_run_imports_neither_pyvista_nor_open3d_nor_contact(tmp_path):
         "from tissue.cli import main\n"
         f"rc = main(['run', 'beam', '--no-render', '--out', {str(tmp_path)!r}, '--steps', '2',"
         " '--set', 'beam.cells=4,1,1'])\n"
-        "heavy = [m for m in ('pyvista', 'vtk', 'open3d', 'tissue.render', 'tissue.contact') if m in sys.modules]\n"
+        "heavy = [m for m in ('pyvista', 'vtk', 'open3d', 'meshio', 'tissue.render', 'tissue.contact')"
+        " if m in sys.modules]\n"
         "print('HEAVY', heavy, 'RC', rc)\n")
     result = _python(code)
     assert "HEAVY [] RC 0" in result.stdout, result.stdout + result.stderr
+
+
+@pytest.mark.parametrize("given, used", [(None, "1"), ("2", "2")])
+def test_the_command_runs_blas_on_one_thread_unless_told(given, used):
+    """OPENBLAS_NUM_THREADS is read when numpy loads OpenBLAS: tissue.cli sets its default before
+    numpy is imported, and leaves a value the user gave."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    code = "import os, sys\nimport tissue.cli\nprint('BLAS', os.environ['OPENBLAS_NUM_THREADS'], 'numpy' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert f"BLAS {used} False" in result.stdout, result.stdout + result.stderr
 
 
 def test_python_dash_m_tissue_smoke(tmp_path):

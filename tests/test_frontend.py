@@ -2,6 +2,8 @@
 and its directly built matrix operations the bits Taichi's own compute."""
 
 import functools
+import textwrap
+from pathlib import Path
 
 import numpy as np
 import taichi as ti
@@ -39,7 +41,11 @@ def test_memoised_positions_equal_taichi_own(monkeypatch):
 
     def checked(ctx, node):
         memo = frontend._get_pos_info(ctx, node)
-        compared.append(memo == frontend._original_pos_info(ctx, node))
+        ast_transformer_utils.TextWrapper = textwrap.TextWrapper      # Taichi's own, wrapper included
+        try:
+            compared.append(memo == frontend._original_pos_info(ctx, node))
+        finally:
+            ast_transformer_utils.TextWrapper = frontend._Wrapper
         return memo
 
     monkeypatch.setattr(ast_transformer_utils.ASTTransformerContext, "get_pos_info", checked)
@@ -72,6 +78,21 @@ def test_class_check_equals_taichi_own():
     _probe(seen)
     assert seen == [(True, True), (False, False)]
     assert frontend._inside_class(10_000) is False     # no frame that far up, as Taichi answers
+
+
+def test_fast_wrapper_equals_textwrap():
+    """get_pos_info wraps each source line and its caret line at 80 columns: every line of tissue's
+    own source, its caret-line shapes, and the cases the fast path leaves to TextWrapper (tabs,
+    other whitespace, non-ASCII, longer than 80 columns)."""
+    lines = [line for path in sorted(Path(frontend.__file__).parent.rglob("*.py"))
+             for line in path.read_text().splitlines()]
+    shapes = [" " * 4 + "^" * 10, " " * 8 + "^" * 3 + " " * 20, "^" * 80, " " * 80, ""]
+    edges = ["x" * 80, "x" * 81, "x" * 79 + "  ", "    " + "y " * 40, "a\tb", "\tif a:", "a\x0cb", "a\x1fb", "é = 1",
+             "a \u3000", "long-hyphenated-" * 6, "  x = 1   ", "   "]
+    wrapper, fast = textwrap.TextWrapper(width=80), frontend._Wrapper(width=80)
+    assert len(lines) > 1000
+    for text in lines + shapes + edges:
+        assert fast.wrap(text) == wrapper.wrap(text), repr(text)
 
 
 def test_memoised_fill_equals_textwrap():

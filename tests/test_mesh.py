@@ -256,16 +256,51 @@ def test_gmsh1_undefined_label_is_named(tmp_path):
 
 
 def test_vtu_round_trip(tmp_path):
+    """Our VTU writer's file reads back through meshio's reader bit for bit, dtypes included."""
     mesh = box(size=(1.0, 2.0, 3.0), cells=(2, 3, 4))
     path = tmp_path / "out" / "box.vtu"
-    write_vtu(path, mesh.points, mesh.tets, point_data={"u": mesh.points * 2},
-              cell_data={"volume": mesh.volumes})
+    rng = np.random.default_rng(0)
+    point_data = {"u": rng.standard_normal(mesh.points.shape), "u_magnitude": rng.random(mesh.n_points),
+                  "held": rng.integers(0, 2, mesh.n_points).astype(np.int32)}
+    cell_data = {"volume": mesh.volumes, "f32": rng.random(mesh.n_tets).astype(np.float32)}
+    write_vtu(path, mesh.points, mesh.tets, point_data=point_data, cell_data=cell_data)
     back = read_mesh(path)
     np.testing.assert_array_equal(back.points, mesh.points)
     np.testing.assert_array_equal(back.tets, mesh.tets)
     raw = meshio.read(path)
-    np.testing.assert_allclose(raw.point_data["u"], mesh.points * 2)
-    np.testing.assert_allclose(raw.cell_data["volume"][0], mesh.volumes)
+    assert raw.points.tobytes() == mesh.points.tobytes()
+    assert [block.type for block in raw.cells] == ["tetra"]
+    np.testing.assert_array_equal(raw.cells[0].data, mesh.tets)      # meshio's reader makes them int64
+    assert raw.point_data.keys() == point_data.keys() and raw.cell_data.keys() == cell_data.keys()
+    for name, values in point_data.items():
+        assert raw.point_data[name].dtype == values.dtype and raw.point_data[name].tobytes() == values.tobytes(), name
+    for name, values in cell_data.items():
+        assert raw.cell_data[name][0].dtype == values.dtype and raw.cell_data[name][0].tobytes() == values.tobytes()
+
+
+def test_vtu_reads_in_vtk(tmp_path):
+    """ParaView's reader (VTK's own) reads the same file: cells, points and data."""
+    vtk = pytest.importorskip("vtk")
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    mesh = box(cells=(2, 2, 2))
+    u = np.random.default_rng(1).standard_normal(mesh.points.shape)
+    write_vtu(tmp_path / "box.vtu", mesh.points, mesh.tets, point_data={"u": u}, cell_data={"volume": mesh.volumes})
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(tmp_path / "box.vtu"))
+    reader.Update()
+    grid = reader.GetOutput()
+    np.testing.assert_array_equal(vtk_to_numpy(grid.GetCells().GetConnectivityArray()).reshape(-1, 4), mesh.tets)
+    assert {grid.GetCellType(i) for i in range(grid.GetNumberOfCells())} == {vtk.VTK_TETRA}
+    np.testing.assert_array_equal(vtk_to_numpy(grid.GetPoints().GetData()), mesh.points)
+    np.testing.assert_array_equal(vtk_to_numpy(grid.GetPointData().GetArray("u")), u)
+    np.testing.assert_array_equal(vtk_to_numpy(grid.GetCellData().GetArray("volume")), mesh.volumes)
+
+
+def test_vtu_refuses_a_dtype_it_cannot_write(tmp_path):
+    mesh = box(cells=(1, 1, 1))
+    with pytest.raises(TissueError, match="flag: cannot write bool"):
+        write_vtu(tmp_path / "bool.vtu", mesh.points, mesh.tets, point_data={"flag": np.ones(mesh.n_points, bool)})
 
 
 def test_pvd_series(tmp_path):

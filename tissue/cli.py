@@ -20,12 +20,16 @@ import statistics
 import sys
 import time
 import traceback
-from importlib import metadata
 from pathlib import Path
 
 # Taichi prints a banner when imported and a line when initialised; the command reports the
 # backend itself (set ENABLE_TAICHI_HEADER_PRINT=true, or use --debug, to see Taichi's own).
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
+# BLAS on one thread unless OPENBLAS_NUM_THREADS says otherwise: OpenBLAS's threads wait on each
+# other whenever the cores are busy (Taichi's own threads, other processes), and then a dense
+# factorisation of a few hundred rows at start-up (the rest compliance) takes seconds instead of
+# milliseconds (bench.startup's BLAS runs). Read when numpy and scipy load it: before any import of them.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__  # noqa: E402
 from .errors import TissueError  # noqa: E402
@@ -189,6 +193,8 @@ def cmd_show(args) -> int:
 
 
 def _version(package: str) -> str:
+    from importlib import metadata      # here: `tissue run` need not import it
+
     try:
         return metadata.version(package)
     except metadata.PackageNotFoundError:

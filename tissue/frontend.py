@@ -7,7 +7,9 @@ and transformed again at every call site it is inlined into (the serial step ker
 CG and multigrid hundreds of times). Most of that time went to two pure functions of the source:
 
 - `ASTTransformerContext.get_pos_info`, the "File …, line …" text with a caret line, wrapped by
-  `textwrap` to 80 columns, built for every name and statement for Taichi's error messages;
+  `textwrap` to 80 columns, built for every name and statement for Taichi's error messages (where
+  a node is new to the memo, its lines go through `_Wrapper`: a line that fits in 80 columns
+  needs no wrapping, only its trailing spaces dropped);
 - `inspect.getsourcelines` / `getsourcefile`, which tokenise the module to find a function.
 
 Then, at each call site again, every source line of the function goes through `textwrap.fill`
@@ -17,7 +19,8 @@ the module up among all loaded modules (`inspect.getmodule`) to read one source 
 decorator, some 230 of them on a scene's imports. `_inside_class` reads that line from
 `linecache` directly, as `getframeinfo` ends up doing.
 
-`install()` memoises the first three by their inputs and replaces the class check. Taichi receives
+`install()` memoises the first three by their inputs, gives `get_pos_info` the fast wrapper and
+replaces the class check. Taichi receives
 the same strings and answers as before (tests/test_frontend.py compares them with its own), so its
 messages do not change. `tissue.backend` installs it when imported, before any of tissue's modules
 defines a kernel.
@@ -73,6 +76,18 @@ def _get_pos_info(ctx, node) -> str:
     if text is None:
         text = _pos_info[key] = _original_pos_info(ctx, node)
     return text
+
+
+class _Wrapper(textwrap.TextWrapper):
+    """TextWrapper, with the answer for a line of printable ASCII that fits in `width` given
+    directly: its one line, less the trailing spaces (none where it is blank), as
+    `TextWrapper.wrap` makes it (no tab or other whitespace to convert, nothing to break)."""
+
+    def wrap(self, text: str) -> list[str]:
+        if len(text) <= self.width and text.isascii() and text.isprintable():
+            line = text.rstrip(" ")
+            return [line] if line else []
+        return super().wrap(text)
 
 
 @functools.cache
@@ -219,6 +234,7 @@ def install() -> None:
     """Memoise the front end's source reads, positions and line filling, replace the
     decorators' class check, and build the small-matrix operations directly (idempotent)."""
     ast_transformer_utils.ASTTransformerContext.get_pos_info = _get_pos_info
+    ast_transformer_utils.TextWrapper = _Wrapper          # the module's own name for the class
     kernel_impl.getsourcelines = _getsourcelines_list
     kernel_impl.getsourcefile = functools.cache(_original_sourcefile)
     # kernel_impl's own name for the textwrap module: fill memoised, the rest as is.

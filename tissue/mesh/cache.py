@@ -13,7 +13,6 @@ import json
 import os
 import tempfile
 from functools import lru_cache
-from importlib import metadata
 from pathlib import Path
 from typing import Callable
 
@@ -34,6 +33,8 @@ def directory() -> Path:
 
 @lru_cache(maxsize=None)
 def _generator_hash() -> str:
+    from importlib import metadata      # here: a run whose meshes need no cache need not import it
+
     digest = hashlib.sha256(VERSION.encode())
     for name in SOURCES:
         digest.update((Path(__file__).parent / name).read_bytes())

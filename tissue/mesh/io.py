@@ -3,17 +3,22 @@
 meshio reads the modern formats (vtu, vtk, msh 2/4, medit, ...). The legacy Gmsh 1.0 format
 (`$NOD` ... `$ENDNOD`, `$ELM` ... `$ENDELM`), still used by SOFA's example meshes, is read here
 because meshio cannot. Every failure is a one-line TissueError that names the file.
+
+The VTU files of a run are written here too, not by meshio: importing meshio (all its formats'
+modules) is a noticeable part of `tissue run`'s start, and a tetrahedral VTU is a few lines of XML
+around base64 arrays. meshio is imported only to read a file.
 """
 
 from __future__ import annotations
 
+import base64
 import os
+import sys
 import xml.etree.ElementTree as ET
 from contextlib import redirect_stderr, redirect_stdout
 from io import StringIO
 from pathlib import Path
 
-import meshio
 import numpy as np
 
 from ..errors import TissueError
@@ -22,6 +27,9 @@ from .tetmesh import TetMesh
 # Cell types that make a file a surface rather than a volume (the common mistake: an .stl/.obj).
 SURFACE_CELLS = {"triangle", "triangle6", "quad", "quad8", "quad9", "polygon"}
 GMSH1_TETRAHEDRON = 4
+VTK_TETRA = 10
+VTU_TYPES = {np.dtype(t): name for t, name in ((np.float64, "Float64"), (np.float32, "Float32"), (np.int64, "Int64"),
+                                                (np.int32, "Int32"), (np.uint8, "UInt8"))}
 
 
 def read_mesh(path) -> TetMesh:
@@ -47,6 +55,8 @@ def read_mesh(path) -> TetMesh:
 def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     # meshio reports a file it cannot parse by printing the reason and calling sys.exit(1):
     # capture what it prints and turn both that and its exceptions into one TissueError.
+    import meshio
+
     printed = StringIO()
     try:
         with redirect_stdout(printed), redirect_stderr(printed):
@@ -111,14 +121,37 @@ def _read_gmsh1(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_vtu(path, points, tets, point_data=None, cell_data=None) -> None:
-    """One tetrahedral mesh as a VTK XML file; point_data / cell_data map names to per-point /
-    per-tet arrays."""
+    """One tetrahedral mesh as a VTK XML file (uncompressed base64 arrays); point_data / cell_data
+    map names to per-point / per-tet arrays (float64, float32, int64, int32 or uint8)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    mesh = meshio.Mesh(np.asarray(points, dtype=np.float64), [("tetra", np.asarray(tets))],
-                       point_data=dict(point_data or {}),
-                       cell_data={name: [np.asarray(values)] for name, values in (cell_data or {}).items()})
-    mesh.write(path, file_format="vtu")
+    points, tets = np.asarray(points, dtype=np.float64), np.asarray(tets)
+    n_points, n_tets = len(points), len(tets)
+    cells = (("connectivity", tets.ravel()), ("offsets", np.arange(4, 4 * n_tets + 1, 4, dtype=tets.dtype)),
+             ("types", np.full(n_tets, VTK_TETRA, dtype=np.uint8)))
+    byte_order = "LittleEndian" if sys.byteorder == "little" else "BigEndian"
+    parts = ['<?xml version="1.0"?>\n',
+             f'<VTKFile type="UnstructuredGrid" version="0.1" byte_order="{byte_order}" header_type="UInt64">\n',
+             f'<UnstructuredGrid>\n<Piece NumberOfPoints="{n_points}" NumberOfCells="{n_tets}">\n<Points>\n',
+             _data_array("Points", points), "</Points>\n<Cells>\n", *(_data_array(n, a) for n, a in cells), "</Cells>\n"]
+    for section, data in (("PointData", point_data), ("CellData", cell_data)):
+        if data:
+            parts += [f"<{section}>\n", *(_data_array(name, values) for name, values in data.items()), f"</{section}>\n"]
+    parts.append("</Piece>\n</UnstructuredGrid>\n</VTKFile>\n")
+    path.write_text("".join(parts), encoding="ascii")
+
+
+def _data_array(name: str, values) -> str:
+    """A DataArray element: the array's bytes in this machine's order, after their count (UInt64), in base64."""
+    values = np.ascontiguousarray(values)
+    try:
+        kind = VTU_TYPES[values.dtype]
+    except KeyError:
+        raise TissueError(f"{name}: cannot write {values.dtype} to a VTU file") from None
+    components = f' NumberOfComponents="{values.shape[1]}"' if values.ndim == 2 else ""
+    data = values.tobytes()
+    encoded = base64.b64encode(np.uint64(len(data)).tobytes() + data).decode("ascii")
+    return f'<DataArray type="{kind}" Name="{name}"{components} format="binary">\n{encoded}\n</DataArray>\n'
 
 
 class PvdSeries:

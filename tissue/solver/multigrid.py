@@ -152,9 +152,9 @@ class Multigrid:
         arrays = dict(coarse_count=ti.ndarray(ti.i32, 1), nodes=ti.ndarray(ti.types.vector(4, ti.i32), capacity),
                       weights=ti.ndarray(vec4, capacity), fine_offsets=ti.ndarray(ti.i32, nc + 1),
                       fine_entries=ti.ndarray(ti.i32, max(1, len(entries))),
-                      coarse_inverse=ti.ndarray(mat3, (nc, nc)), nodal_R=ti.ndarray(mat3, capacity),
+                      coarse_inverse=ti.ndarray(real, (3 * nc, 3 * nc)), nodal_R=ti.ndarray(mat3, capacity),
                       res=ti.ndarray(vec3, capacity), d=ti.ndarray(vec3, capacity),
-                      rc=ti.ndarray(vec3, nc), ec=ti.ndarray(vec3, nc),
+                      rc=ti.ndarray(real, 3 * nc), ec=ti.ndarray(real, 3 * nc),
                       coefficients=ti.ndarray(real, 1 + 2 * len(steps)))
         arrays["coarse_count"].from_numpy(np.array([nc], dtype=np.int32))
         arrays["nodes"].from_numpy(padded_nodes)
@@ -162,7 +162,7 @@ class Multigrid:
         arrays["fine_offsets"].from_numpy(offsets)
         if len(entries):
             arrays["fine_entries"].from_numpy(entries.astype(np.int32))
-        arrays["coarse_inverse"].from_numpy(C.reshape(nc, 3, nc, 3).transpose(0, 2, 1, 3).astype(np_real))
+        arrays["coarse_inverse"].from_numpy(C.astype(np_real))     # dof 3c + d of coarse node c, as P's columns
         arrays["nodal_R"].from_numpy(np.tile(np.eye(3, dtype=np_real), (capacity, 1, 1)))
         arrays["coefficients"].from_numpy(np.array([theta] + [c for step in steps for c in step], dtype=np_real))
         self.A0, self.theta, self.steps = A0, theta, steps
@@ -240,25 +240,28 @@ def _chebyshev_step(k: ti.template(), o: ti.template(), z: ti.template(), step):
 
 @ti.func
 def _coarse_correction(k: ti.template(), z: ti.template()):
-    """z += R P A_c⁻¹ Pᵀ Rᵀ res."""
+    """z += R P A_c⁻¹ Pᵀ Rᵀ res. The coarse vectors are flat (coarse node c's dofs at 3c, 3c+1, 3c+2),
+    so that the dense product is one scalar dot product per row: less code to compile than 3×3 blocks."""
     for c in range(k.coarse_count[0]):  # restriction: a gather over the fine nodes around c
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
             for j in range(k.fine_offsets[c], k.fine_offsets[c + 1]):
                 v, corner = k.fine_entries[j] // 4, k.fine_entries[j] % 4
                 s += k.weights[v][corner] * (k.nodal_R[v].transpose() @ k.res[v])
-            k.rc[c] = s
-    for c in range(k.coarse_count[0]):
+            for d in ti.static(range(3)):
+                k.rc[3 * c + d] = s[d]
+    for i in range(3 * k.coarse_count[0]):
         if _running(k):
-            s = ti.Vector([0.0, 0.0, 0.0])
-            for j in range(k.coarse_count[0]):
-                s += k.coarse_inverse[c, j] @ k.rc[j]
-            k.ec[c] = s
+            s = 0.0
+            for j in range(3 * k.coarse_count[0]):
+                s += k.coarse_inverse[i, j] * k.rc[j]
+            k.ec[i] = s
     for v in range(k.counts[0]):  # prolongation
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
             for corner in ti.static(range(4)):
-                s += k.weights[v][corner] * k.ec[k.nodes[v][corner]]
+                c = k.nodes[v][corner]
+                s += k.weights[v][corner] * ti.Vector([k.ec[3 * c], k.ec[3 * c + 1], k.ec[3 * c + 2]])
             z[v] = z[v] + k.nodal_R[v] @ s
 
 
