@@ -409,10 +409,7 @@ class ImplicitEuler:
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
-        if self._checked_material is not self.model.material:
-            self.check_regime()
-        k, o = self._step_pack(), self.scheme
-        tol = self.fem.rotation_tolerance
+        k, o, tol = self.prepare_step()
         if self.execution == "serial" and not self.split_stages:
             with self.stats.stage("step"):
                 report = SERIAL(k, o, "step", tol)
@@ -429,6 +426,19 @@ class ImplicitEuler:
                     for _ in range(-(-self.cg.max_iterations // self.unroll)):
                         ITERATE_PARALLEL(k, o)
                     report = END_PARALLEL(k, o)
+        self.record_step(report)
+
+    def prepare_step(self):
+        """What a step's launches take: (the argpack, the scheme, the rotations' tolerance), after
+        the regime check a changed material needs (a caller fusing more into the serial launch,
+        tissue.solver.step_control, takes the step through this and `record_step`)."""
+        if self._checked_material is not self.model.material:
+            self.check_regime()
+        return self._step_pack(), self.scheme, self.fem.rotation_tolerance
+
+    def record_step(self, report) -> None:
+        """Count the step's CG report (`_report`) in the stats; warn of inverted elements once;
+        raise TissueError if the state became non-finite."""
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),
@@ -438,7 +448,7 @@ class ImplicitEuler:
             warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; linear "
                           "co-rotational elements have no inversion barrier, so the material may be too "
                           f"soft for its load (E={self.fem.material.young}) or dt too large (dt={self.dt}); "
-                          "'polar' rotations recover better than 'large'", stacklevel=2)
+                          "'polar' rotations recover better than 'large'", stacklevel=3)
         # A non-finite right-hand side (NaN positions, or NaN velocities at fixed nodes) stops the CG
         # at once with dv = 0, so the velocities alone would not show it.
         if nonfinite > 0 or not (math.isfinite(rhs2) and math.isfinite(res2)):
@@ -777,7 +787,8 @@ def _iterate_parallel(k: STEP, o: ti.template()):
 
 # The step's report comes back as float64: a type written with `float` is resolved when the module
 # is imported, before ti.init chose the precision, so it would be float32.
-REPORT = ti.types.vector(6, ti.f64)
+REPORT_SIZE = 6
+REPORT = ti.types.vector(REPORT_SIZE, ti.f64)
 
 
 @ti.kernel
