@@ -261,9 +261,10 @@ def _posed(solve):
     return posed
 
 
-def floor_scene(compliance: str = "warped", step_control: str | None = None):
+def floor_scene(compliance: str = "warped", step_control: str | None = None, overrides=()):
     """SOFA's floor scene (REFERENCE-TIMINGS.md): the 596-tet liver dropped on a rigid floor,
-    μ 0.5; `step_control` overrides the solver's (the scene's default: energy control)."""
+    μ 0.5; `step_control` overrides the solver's (the scene's default: energy control), and
+    `overrides` ("solver.preconditioner=jacobi", ...) any field."""
     from dataclasses import dataclass, field
 
     from tissue.contact import Contact, Obstacle
@@ -285,7 +286,7 @@ def floor_scene(compliance: str = "warped", step_control: str | None = None):
                                                                  max_iterations=1000, compliance=compliance))
         solver: Solver = field(default_factory=lambda: Solver(**solver))
 
-    return Simulation(LiverFloor())
+    return Simulation(LiverFloor().with_overrides(list(overrides)))
 
 
 def run_floor(compliance: str, steps: int) -> dict:

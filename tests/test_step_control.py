@@ -126,7 +126,8 @@ def test_start_energy_reused_only_where_the_last_step_ended(backend):
 def test_energy_kernel_matches_numpy(backend, rotation, execution):
     """The check's kernel against the numpy energy (tissue.fem.energy, itself checked against the
     reference above) on a turned, perturbed beam with inverted elements: kinetic + elastic, and
-    the potential of gravity and applied forces, to 1e-12."""
+    the potential of gravity and applied forces, to 1e-12; where the solver runs serially, also the
+    evaluation at a step's start in the step's launch."""
     from tissue.solver import ImplicitEuler
 
     mesh = stability._mesh()
@@ -146,6 +147,10 @@ def test_energy_kernel_matches_numpy(backend, rotation, execution):
     elastic = elastic_energy(model, x, rotation)
     assert inner == pytest.approx(elastic + 0.5 * model.mass @ (v * v).sum(1), rel=1e-12)
     assert potential == pytest.approx(-model.mass @ (x @ gravity) - (forces * x).sum(), rel=1e-12)
+    if execution == "serial":       # the evaluation at a step's start in its launch, from its rotations
+        start, _ = EnergyControl(solver)._checked_step(None)
+        assert start == pytest.approx((inner, potential), rel=1e-12)
+        solver.set_state(x, v)
     solver.set_state(velocities=np.zeros_like(v))
     assert EnergyControl(solver).energy()[0] == pytest.approx(elastic, rel=1e-12)
 
@@ -161,3 +166,47 @@ def test_soft_beam_at_large_steps_gains_energy_unless_checked(backend, young, dt
     assert unchecked["outcome"] == "energy" and unchecked["cg_steps_at_cap"] == 0, unchecked
     checked = stability.simulate(cell)
     assert checked["outcome"] == "bounded" and checked["energy_rejections"] > 0, checked
+
+
+@pytest.mark.parametrize("rotation", ["large", "polar", "invertible", "linear"])
+def test_checked_serial_step_matches_separate_evaluations(backend, rotation):
+    """The serial step with both evaluations in its launch against the step and the evaluations
+    launched apart: the same rejections, the energies to 1e-12 (of the largest; the start's from the step's
+    rotations, not an eigensolve) and the states to 1e-12 (the same arithmetic; Taichi's fast math
+    lets LLVM contract it differently in the larger kernel: bit for bit with fast_math=False). The
+    velocities are scaled between steps, as a contact correction moves the state, so every start is
+    evaluated afresh."""
+    from tissue.solver import CGSettings, ImplicitEuler
+
+    mesh = stability._mesh()
+    material = Material(2e3, 0.3, 1000.0)
+    cell = dict(case="material", young=material.young, poisson=material.poisson, dt=0.1, rotation=rotation)
+    x0, v0, fixed = stability.initial_state(cell, mesh)
+    runs = []
+    for fused in (True, False):
+        solver = ImplicitEuler(CorotationalFEM(mesh, material, rotation=rotation), cell["dt"], gravity=stability.GRAVITY,
+                               rayleigh_mass=0.1, rayleigh_stiffness=0.1, execution="serial",
+                               cg=CGSettings(max_iterations=100, tolerance=1e-6, preconditioner="jacobi"))
+        solver.set_fixed(fixed)
+        solver.set_state(x0, v0)
+        control = EnergyControl(solver, fused=fused)
+        energies, checked_step = [], control._checked_step
+
+        def logged(start, checked_step=checked_step, energies=energies):
+            start, end = checked_step(start)
+            energies.append((*start, *end))
+            return start, end
+
+        control._checked_step = logged
+        states = []
+        for _ in range(6):
+            control.step()
+            states.append(np.concatenate([solver.positions(), solver.velocities()]))
+            solver.set_state(velocities=0.9 * solver.velocities())
+        runs.append((np.array(states), np.array(energies), solver.stats.history["energy_rejections"]))
+    (fused, fused_energies, fused_rejections), (apart, apart_energies, apart_rejections) = runs
+    assert fused_rejections == apart_rejections
+    assert sum(apart_rejections) > 0 or rotation == "linear"     # (a linear step only loses energy)
+    assert np.abs(fused - apart).max() <= 1e-12 * np.abs(apart).max()
+    # to 1e-12 of the energies in play (the rest state's elastic energy is round-off)
+    assert np.abs(fused_energies - apart_energies).max() <= 1e-12 * np.abs(apart_energies).max()

@@ -174,11 +174,11 @@ class Simulation:
     def set_parameters(self, **changes) -> None:
         """Change the step's parameters on the live simulation, from the next step on, compiling
         nothing: `dt`, `gravity`, and the `solver` group's `cg_iterations`, `cg_tolerance`,
-        `rayleigh_mass`, `rayleigh_stiffness` (e.g. `sim.set_parameters(dt=0.01, cg_iterations=50)`).
+        `cg_warm_start`, `rayleigh_mass`, `rayleigh_stiffness` (e.g. `sim.set_parameters(dt=0.01, cg_iterations=50)`).
         The contact stage's compliance is built for one step matrix, so with contact dt and
         damping stay as built."""
-        scene_fields, solver_fields = {"dt", "gravity"}, {"cg_iterations", "cg_tolerance", "rayleigh_mass",
-                                                          "rayleigh_stiffness"}
+        scene_fields, solver_fields = {"dt", "gravity"}, {"cg_iterations", "cg_tolerance", "cg_warm_start",
+                                                          "rayleigh_mass", "rayleigh_stiffness"}
         unknown = sorted(set(changes) - scene_fields - solver_fields)
         if unknown:
             raise TissueError(f"{unknown[0]}: not a parameter a live simulation can change; "

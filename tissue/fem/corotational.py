@@ -59,6 +59,9 @@ ROTATIONS = ("large", "polar", "invertible", "linear")
 # The mean of a node's element rotations is taken as singular (no polar factor) below this
 # determinant (1 for alike rotations; 0 when, e.g., I and a half turn average).
 SINGULAR_MEAN = 1e-6
+# An element whose |det F| is at most this is (nearly) flat: its polar rotation is ill-defined, so it
+# takes its edge frame's ("large") rotation instead.
+FLAT_DETERMINANT = 1e-6
 COMPRESSION_LIMIT = 0.3
 COMPRESSION_STIFFNESS = 10.0
 BARRIER_END = 0.3
@@ -316,7 +319,7 @@ def element_rotation(m: ti.template(), e, x: ti.template(), rotation: ti.templat
         R = edge_frame(x[t[0]], x[t[1]], x[t[2]]) @ m.rest_frame[e].transpose()
     elif ti.static(rotation == "polar" or rotation == "invertible"):
         F = deformation_gradient(m, e, x)
-        if ti.abs(F.determinant()) > 1e-6:
+        if ti.abs(F.determinant()) > FLAT_DETERMINANT:
             R = polar_rotation(F, tol)
         else:  # (nearly) flat element: the edge frame is still well defined
             t = m.tets[e]

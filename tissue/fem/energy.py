@@ -1,6 +1,7 @@
 """The elastic energy of a body's co-rotational elements at given positions: numpy on the host
 (the reference), and `element_energy`, the same per element in a Taichi function (the energy
-check's kernel, tissue.solver.step_control, computes it on the device).
+check's kernel, tissue.solver.step_control, computes it on the device): `polar_energy` from the
+signed principal stretches, or `rotated_energy` from F's polar rotation where a step has it.
 
 For "polar" the linear co-rotational energy is a true potential of its forces: with R the polar
 rotation of F and ε = RᵀF − I (symmetric), an element stores V (μ ε:ε + λ/2 (tr ε)²), which is
@@ -13,8 +14,8 @@ one it approximates, and the one used for it here. "linear" is ε = sym(F) − I
 import numpy as np
 import taichi as ti
 
-from .corotational import (BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, deformation_gradient, limit_energy,
-                           symmetric_eigen)
+from .corotational import (BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, FLAT_DETERMINANT, compressed,
+                           deformation_gradient, limit_energy, symmetric_eigen)
 from .model import BodyModel
 
 
@@ -63,26 +64,69 @@ def elastic_energy(model: BodyModel, x: np.ndarray, rotation: str) -> float:
 
 @ti.func
 def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template()):
-    """Element e's elastic energy (J), as `element_energies`: σᵢ² by Jacobi rotations on FᵀF
-    (tissue.fem.corotational.symmetric_eigen), the smallest σ negative where det F < 0."""
+    """Element e's elastic energy (J) at positions x, as `element_energies`."""
     F = deformation_gradient(m, e, x)
-    volume, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
     energy = 0.0
     if ti.static(rotation == "linear"):
+        volume, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
         eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
         energy = volume * (mu * eps.norm_sqr() + 0.5 * lam * eps.trace() ** 2)
     else:
-        squares, _ = symmetric_eigen(F.transpose() @ F)
-        s = ti.sqrt(ti.max(squares, 0.0))
-        if F.determinant() < 0.0:           # the smallest stretch turns negative (static indices only)
-            smallest, flipped = ti.min(s[0], s[1], s[2]), False
-            for i in ti.static(range(3)):
-                if not flipped and s[i] == smallest:
-                    s[i], flipped = -s[i], True
-        strain = s - 1.0
-        energy = volume * (mu * strain.norm_sqr() + 0.5 * lam * strain.sum() ** 2)
-        if ti.static(rotation == "invertible"):
+        energy = polar_energy(m, e, F, rotation)
+    return energy
+
+
+@ti.func
+def element_energy_at_rotations(m: ti.template(), w: ti.template(), e, x: ti.template(), rotation: ti.template()):
+    """`element_energy`, from the rotations w.R of the FEM's last update where they are F's polar
+    rotations ("polar", "invertible", elements not flat: tissue.fem.corotational.element_rotation):
+    a step's start, whose rotations the step computes anyway."""
+    energy = 0.0
+    if ti.static(rotation == "polar" or rotation == "invertible"):
+        F = deformation_gradient(m, e, x)
+        if ti.abs(F.determinant()) > FLAT_DETERMINANT:
+            energy = rotated_energy(m, e, w.R[e], F, rotation)
+        else:
+            energy = polar_energy(m, e, F, rotation)
+    else:
+        energy = element_energy(m, e, x, rotation)
+    return energy
+
+
+@ti.func
+def polar_energy(m: ti.template(), e, F, rotation: ti.template()):
+    """Element e's co-rotational energy at F, its rotation the polar one: σᵢ² by Jacobi rotations on
+    FᵀF (tissue.fem.corotational.symmetric_eigen), the smallest σ negative where det F < 0."""
+    volume, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
+    squares, _ = symmetric_eigen(F.transpose() @ F)
+    s = ti.sqrt(ti.max(squares, 0.0))
+    if F.determinant() < 0.0:           # the smallest stretch turns negative (static indices only)
+        smallest, flipped = ti.min(s[0], s[1], s[2]), False
+        for i in ti.static(range(3)):
+            if not flipped and s[i] == smallest:
+                s[i], flipped = -s[i], True
+    strain = s - 1.0
+    energy = volume * (mu * strain.norm_sqr() + 0.5 * lam * strain.sum() ** 2)
+    if ti.static(rotation == "invertible"):
+        kappa = COMPRESSION_STIFFNESS * (lam + 2.0 * mu)
+        for i in ti.static(range(3)):
+            energy += volume * limit_energy(kappa, s[i])
+    return energy
+
+
+@ti.func
+def rotated_energy(m: ti.template(), e, R, F, rotation: ti.template()):
+    """`polar_energy` given F's polar rotation R: ε = RᵀF − I is symmetric, its eigenvalues σ̂ᵢ − 1,
+    so the energy needs no eigensolve, unless the compression limit ("invertible") is active."""
+    volume, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
+    G = R.transpose() @ F
+    S = 0.5 * (G + G.transpose())
+    strain = S - ti.Matrix.identity(float, 3)
+    energy = volume * (mu * strain.norm_sqr() + 0.5 * lam * strain.trace() ** 2)
+    if ti.static(rotation == "invertible"):
+        if compressed(S):
+            stretches, _ = symmetric_eigen(S)
             kappa = COMPRESSION_STIFFNESS * (lam + 2.0 * mu)
             for i in ti.static(range(3)):
-                energy += volume * limit_energy(kappa, s[i])
+                energy += volume * limit_energy(kappa, stretches[i])
     return energy

@@ -46,8 +46,8 @@ OPERATORS = ("assembled", "matrix_free")
 # thread-pool dispatch, and a CG iteration has five of them (bench/deformation.py measures it).
 SERIAL_BELOW = 30_000
 
-# Scalar slots of the CG state kept on the device.
-DELTA, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE = range(11)
+# Scalar slots of the CG state kept on the device (LAST_DT: the dt of the last solve, its dv's).
+DELTA, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE, LAST_DT = range(12)
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,9 @@ class CGSettings:
     # the degree of its Chebyshev smoother (products with A per smoothing).
     coarse_nodes: int | None = None
     smoothing_degree: int = 2
+    # Start from the last solve's dv scaled to this dt (the same acceleration) instead of zero; the
+    # stopping rule is the same. A body at rest or in steady motion starts near its solution.
+    warm_start: bool = False
 
     def __post_init__(self):
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
@@ -76,6 +79,8 @@ class CGSettings:
             raise TissueError(f"coarse_nodes: must be an integer ≥ 8 or None (automatic), got {self.coarse_nodes!r}")
         if not (isinstance(self.smoothing_degree, int) and self.smoothing_degree >= 1):
             raise TissueError(f"smoothing_degree: must be an integer ≥ 1, got {self.smoothing_degree!r}")
+        if not isinstance(self.warm_start, bool):
+            raise TissueError(f"warm_start: must be True or False, got {self.warm_start!r}")
 
 
 @dataclass(frozen=True)
@@ -101,7 +106,7 @@ class Scheme:
 # The step's state on the device: nodal vectors, the block-diagonal inverse (preconditioners),
 # the CG scalars (slots above), blocked partial sums, and the step's parameters (slots below).
 STATE_MEMBERS = ("x", "v", "dv", "r", "z", "p", "q", "external", "block_inverse", "scalars", "partial", "parameters")
-DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERATIONS = range(9)
+DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERATIONS, WARM_START = range(10)
 # A step's kernels take one flat argpack: the members of the model (MODEL), the FEM's work
 # (FEM_WORK), the state, the assembled blocks (BLOCKS) and the multigrid. Flat, because a kernel
 # reloads an ndarray's address after every store to an ndarray (they might alias), one load per
@@ -135,10 +140,11 @@ class StepParameters:
             raise TissueError(f"gravity: expected 3 finite numbers, got {self.gravity!r}")
 
     def array(self) -> np.ndarray:
-        values = np.zeros(9)
+        values = np.zeros(10)
         values[[DT, MASS_DAMPING, STIFFNESS_DAMPING]] = self.dt, self.rayleigh_mass, self.rayleigh_stiffness
         values[[GX, GY, GZ]] = self.gravity
         values[[TOLERANCE, THRESHOLD, MAX_ITERATIONS]] = self.cg.tolerance, self.cg.threshold, self.cg.max_iterations
+        values[WARM_START] = self.cg.warm_start
         return values
 
 
@@ -236,7 +242,7 @@ class ImplicitEuler:
         if (new.cg.preconditioner, new.cg.smoothing_degree, new.cg.coarse_nodes) != \
                 (self.cg.preconditioner, self.cg.smoothing_degree, self.cg.coarse_nodes):
             raise TissueError("cg: the preconditioner and its multigrid settings are fixed when the solver is "
-                              "built; only max_iterations, tolerance and threshold change on a live solver")
+                              "built; only max_iterations, tolerance, threshold and warm_start change on a live solver")
         rest_changed = (new.dt, new.rayleigh_mass, new.rayleigh_stiffness) != \
             (self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
         if new.gravity != self.gravity:
@@ -275,9 +281,9 @@ class ImplicitEuler:
         old = getattr(self, "arrays", None)
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
-        arrays["scalars"] = ti.ndarray(real, 11)
-        arrays["partial"] = ti.ndarray(real, (2, (n + BLOCK - 1) // BLOCK))
-        arrays["parameters"] = ti.ndarray(real, 9)
+        arrays["scalars"] = ti.ndarray(real, 12)
+        arrays["partial"] = ti.ndarray(real, (3, (n + BLOCK - 1) // BLOCK))
+        arrays["parameters"] = ti.ndarray(real, 10)
         for name in ("x", "v", "external"):
             values = np.zeros((n, 3), dtype=real_numpy())
             if old is not None:
@@ -409,10 +415,7 @@ class ImplicitEuler:
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
-        if self._checked_material is not self.model.material:
-            self.check_regime()
-        k, o = self._step_pack(), self.scheme
-        tol = self.fem.rotation_tolerance
+        k, o, tol = self.prepare_step()
         if self.execution == "serial" and not self.split_stages:
             with self.stats.stage("step"):
                 report = SERIAL(k, o, "step", tol)
@@ -429,6 +432,19 @@ class ImplicitEuler:
                     for _ in range(-(-self.cg.max_iterations // self.unroll)):
                         ITERATE_PARALLEL(k, o)
                     report = END_PARALLEL(k, o)
+        self.record_step(report)
+
+    def prepare_step(self):
+        """What a step's launches take: (the argpack, the scheme, the rotations' tolerance), after
+        the regime check a changed material needs (a caller fusing more into the serial launch,
+        tissue.solver.step_control, takes the step through this and `record_step`)."""
+        if self._checked_material is not self.model.material:
+            self.check_regime()
+        return self._step_pack(), self.scheme, self.fem.rotation_tolerance
+
+    def record_step(self, report) -> None:
+        """Count the step's CG report (`_report`) in the stats; warn of inverted elements once;
+        raise TissueError if the state became non-finite."""
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),
@@ -438,7 +454,7 @@ class ImplicitEuler:
             warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; linear "
                           "co-rotational elements have no inversion barrier, so the material may be too "
                           f"soft for its load (E={self.fem.material.young}) or dt too large (dt={self.dt}); "
-                          "'polar' rotations recover better than 'large'", stacklevel=2)
+                          "'polar' rotations recover better than 'large'", stacklevel=3)
         # A non-finite right-hand side (NaN positions, or NaN velocities at fixed nodes) stops the CG
         # at once with dv = 0, so the velocities alone would not show it.
         if nonfinite > 0 or not (math.isfinite(rhs2) and math.isfinite(res2)):
@@ -577,8 +593,9 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first):
 
 @ti.func
 def _begin(k: ti.template(), o: ti.template(), tol):
-    """Rotations, the assembled matrix, forces and the right-hand side: r, and z = p = P⁻¹ r
-    node by node (the coupled preconditioner and the CG's scalars follow: _start_cg)."""
+    """Rotations, the assembled matrix, forces, the right-hand side b and CG's start: dv, r = b − A dv,
+    and z = p = P⁻¹ r node by node (the coupled preconditioner and the CG's scalars follow:
+    _start_cg)."""
     h = k.parameters[DT]
     mass_factor, stiffness_factor = factors(k)
     g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
@@ -611,7 +628,7 @@ def _begin(k: ti.template(), o: ti.template(), tol):
                     A = ti.Matrix.identity(float, 3)
                 k.block_inverse[v] = A.inverse()
             z = _preconditioned(k, o, v, rhs)
-            k.dv[v] = ti.Vector([0.0, 0.0, 0.0])
+            k.dv[v] = _guess(k, v)
             k.r[v] = rhs
             k.z[v] = z
             k.p[v] = z
@@ -619,6 +636,47 @@ def _begin(k: ti.template(), o: ti.template(), tol):
             rr += rhs.dot(rhs)
         k.partial[0, b] = rz
         k.partial[1, b] = rr
+        k.partial[2, b] = rr     # ‖b‖²: the stopping rule's scale
+    _warm_start(k, o)
+
+
+@ti.func
+def _guess(k: ti.template(), v):
+    """CG's start at node v: zero, or warm, the last solve's dv scaled to this dt (zero at held
+    nodes, and where it is not finite)."""
+    guess = ti.Vector([0.0, 0.0, 0.0])
+    if k.parameters[WARM_START] != 0 and k.scalars[LAST_DT] > 0 and k.held[v] == 0:
+        guess = (k.parameters[DT] / k.scalars[LAST_DT]) * k.dv[v]
+        if not (guess.norm_sqr() < 1e300):
+            guess = ti.Vector([0.0, 0.0, 0.0])
+    return guess
+
+
+@ti.func
+def _warm_start(k: ti.template(), o: ti.template()):
+    """Warm: r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
+    if ti.static(o.operator == "matrix_free"):
+        for e in range(k.counts[1]):
+            if k.parameters[WARM_START] != 0:
+                corotational.scatter_element(k, k, "stiffness", e, k.dv, o.accumulation, o.rotation)
+    elif ti.static(o.layout == "symmetric"):   # one thread runs the step: a runtime branch is free
+        if k.parameters[WARM_START] != 0:
+            assembled.symmetric_multiply(k, k, k.dv)
+    mass_factor, stiffness_factor = factors(k)
+    for b in range(_blocks(k)):
+        if k.parameters[WARM_START] != 0:
+            rz, rr = 0.0, 0.0
+            begin, end = _block_nodes(k, b)
+            for v in range(begin, end):
+                r = k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor)
+                z = _preconditioned(k, o, v, r)
+                k.r[v] = r
+                k.z[v] = z
+                k.p[v] = z
+                rz += r.dot(z)
+                rr += r.dot(r)
+            k.partial[0, b] = rz
+            k.partial[1, b] = rr
 
 
 @ti.func
@@ -627,10 +685,12 @@ def _start_cg(k: ti.template()):
     for _ in range(1):
         delta = _sum_partials(k, 0)
         k.scalars[DELTA] = delta
-        k.scalars[RHS2] = _sum_partials(k, 1)
+        k.scalars[RHS2] = _sum_partials(k, 2)
         k.scalars[ITERATION] = 0
         k.scalars[BREAKDOWN] = 0
-        k.scalars[DONE] = 1 if delta <= 0 else 0
+        tol = k.parameters[TOLERANCE]
+        k.scalars[DONE] = 1 if delta <= 0 or _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] else 0
+        k.scalars[LAST_DT] = k.parameters[DT]
 
 
 @ti.func
@@ -777,7 +837,8 @@ def _iterate_parallel(k: STEP, o: ti.template()):
 
 # The step's report comes back as float64: a type written with `float` is resolved when the module
 # is imported, before ti.init chose the precision, so it would be float32.
-REPORT = ti.types.vector(6, ti.f64)
+REPORT_SIZE = 6
+REPORT = ti.types.vector(REPORT_SIZE, ti.f64)
 
 
 @ti.kernel

@@ -14,33 +14,83 @@ undone and taken as two steps of dt/2, each checked the same way, down to dt / 2
 step still gaining energy there is kept, and counted (`energy_unresolved` in the solver's stats).
 The stats also count the step's rejections (`energy_rejections`).
 
-The energy is one kernel launch over the solver's arrays on the device (nothing copied to the
-host): a signed principal-stretch eigensolve per element, summed in a fixed order (a per-element
-buffer then a serial sum; one thread throughout where the solver runs serially). The kernel keeps
-the last two states it evaluated (x, v), alternately: a state equal to the one before, bit for bit,
-on an unedited model (`BodyModel.edits`), reuses its elastic energy (a step's start is where the
-last one ended, unless the contact stage's correction moved it); and the state a step started
-from is there to undo the step. Costs: that launch at the end of each step, and the rejected
+The energy is evaluated on the device over the solver's arrays (nothing copied to the host): a
+signed principal-stretch eigensolve per element (tissue.fem.energy), summed in a fixed order. Where
+the solver runs serially, one launch takes the step and both evaluations (`_checked_serial`): the
+start's from the rotations the step computes (no eigensolve), the end's after it. Otherwise the
+evaluation is a launch of its own (a per-element buffer, then a serial sum) before and after the
+step. The evaluations keep the last two states they saw (x, v), alternately: a state equal to the
+one before, bit for bit, on an unedited model (`BodyModel.edits`), reuses its elastic energy (a
+step's start is where the last one ended, unless the contact stage's correction moved it); and the
+state a step started from is there to undo the step. Costs: the evaluations, and the rejected
 steps' work (bench/step_control.py).
 """
 
 import numpy as np
 import taichi as ti
 
-from .. import backend
+from .. import backend, compilation
 from ..errors import TissueError
-from ..fem.energy import element_energy
-from ..fem.model import real_numpy
+from ..fem.energy import element_energy, element_energy_at_rotations
 from ..launch import replayed
-from .implicit_euler import GX, GY, GZ, STEP
+from .implicit_euler import GX, GY, GZ, REPORT_SIZE, STEP, _begin, _end, _multigrid, _report, _solve_serial
 
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
 MAX_HALVINGS = 6        # dt / 64 at the finest
 
-# The kernel's own arrays: per-element energies, the last two states evaluated (slot, node), and
-# its totals: the elastic energy of the last evaluation, whether it was fresh, kinetic, potential.
+# The evaluations' own arrays: per-element energies, the last two states evaluated (slot, node), and
+# their totals (slots below).
 ENERGY_WORK = ti.types.argpack(per_element=ti.types.ndarray(), seen_x=ti.types.ndarray(),
                                seen_v=ti.types.ndarray(), totals=ti.types.ndarray())
+# The elastic energy of the last evaluation, whether it was fresh, kinetic, potential; then the
+# (kinetic + elastic, potential, fresh) of an evaluation at a step's start and at its end.
+ELASTIC, FRESH, KINETIC, POTENTIAL, AT_START, AT_END = 0, 1, 2, 3, 4, 7
+TOTALS = 10
+
+
+@ti.func
+def _keep_state(k: ti.template(), w: ti.template(), previous, edited):
+    """Keep the solver's state in slot 1 − previous; FRESH: whether it differs from slot
+    `previous` or the model was `edited` (one thread)."""
+    changed = edited
+    for v in range(k.counts[0]):
+        if (k.x[v] != w.seen_x[previous, v]).any() or (k.v[v] != w.seen_v[previous, v]).any():
+            changed = 1
+        w.seen_x[1 - previous, v] = k.x[v]
+        w.seen_v[1 - previous, v] = k.v[v]
+    w.totals[FRESH] = changed
+
+
+@ti.func
+def _load_energies(k: ti.template(), w: ti.template()):
+    """KINETIC, and POTENTIAL: that of gravity and the applied forces (one thread)."""
+    g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
+    kinetic, potential = 0.0, 0.0
+    for v in range(k.counts[0]):
+        kinetic += 0.5 * k.mass[v] * k.v[v].norm_sqr()
+        potential -= (k.mass[v] * g + k.external[v]).dot(k.x[v])
+    w.totals[KINETIC] = kinetic
+    w.totals[POTENTIAL] = potential
+
+
+@ti.func
+def _evaluate_serial(k: ti.template(), w: ti.template(), rotation: ti.template(), at_rotations: ti.template(),
+                     previous, edited, out):
+    """An evaluation in one thread, into totals[out:out + 3]; `at_rotations`: the elements' energies
+    from the FEM's rotations, which must be those of the state (a step's start)."""
+    _keep_state(k, w, previous, edited)
+    if w.totals[FRESH] != 0:
+        total = 0.0
+        for e in range(k.counts[1]):
+            if ti.static(at_rotations):
+                total += element_energy_at_rotations(k, k, e, k.x, rotation)
+            else:
+                total += element_energy(k, e, k.x, rotation)
+        w.totals[ELASTIC] = total
+    _load_energies(k, w)
+    w.totals[out] = w.totals[KINETIC] + w.totals[ELASTIC]
+    w.totals[out + 1] = w.totals[POTENTIAL]
+    w.totals[out + 2] = w.totals[FRESH]
 
 
 @ti.kernel
@@ -49,51 +99,73 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
     """(kinetic + elastic, the potential of gravity and the applied forces, 1 if the elastic
     energy was evaluated afresh) at the solver's state; the state is kept in slot 1 − previous
     and compared with slot `previous` (the elastic energy reused where equal and not `edited`)."""
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        changed = edited
-        for v in range(k.counts[0]):
-            if (k.x[v] != w.seen_x[previous, v]).any() or (k.v[v] != w.seen_v[previous, v]).any():
-                changed = 1
-            w.seen_x[1 - previous, v] = k.x[v]
-            w.seen_v[1 - previous, v] = k.v[v]
-        w.totals[1] = changed
     if ti.static(parallel):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            _keep_state(k, w, previous, edited)
         for e in range(k.counts[1]):
-            if w.totals[1] != 0:
+            if w.totals[FRESH] != 0:
                 w.per_element[e] = element_energy(k, e, k.x, rotation)
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            if w.totals[FRESH] != 0:
+                total = 0.0
+                for e in range(k.counts[1]):
+                    total += w.per_element[e]
+                w.totals[ELASTIC] = total
+            _load_energies(k, w)
+            w.totals[AT_END] = w.totals[KINETIC] + w.totals[ELASTIC]
+            w.totals[AT_END + 1] = w.totals[POTENTIAL]
+            w.totals[AT_END + 2] = w.totals[FRESH]
+    else:
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            _evaluate_serial(k, w, rotation, False, previous, edited, AT_END)
+    return ti.Vector([w.totals[AT_END], w.totals[AT_END + 1], w.totals[AT_END + 2]])
+
+
+# The serial step's report, then (kinetic + elastic, potential, fresh) at its start and at its end.
+CHECKED_REPORT = ti.types.vector(REPORT_SIZE + 6, ti.f64)
+
+
+@compilation.without_ir_passes(_multigrid)
+@ti.kernel
+def _checked_serial(k: STEP, o: ti.template(), w: ENERGY_WORK, tol: ti.f64, previous: ti.i32,
+                    edited: ti.i32) -> CHECKED_REPORT:
+    """The serial step (tissue.solver.implicit_euler._serial) with an evaluation at its start, after
+    its rotations, and one at its end: the start's state kept in slot 1 − previous, the end's in
+    slot `previous`."""
     ti.loop_config(serialize=True)
     for _ in range(1):
-        if w.totals[1] != 0:
-            total = 0.0
-            for e in range(k.counts[1]):
-                if ti.static(parallel):
-                    total += w.per_element[e]
-                else:
-                    total += element_energy(k, e, k.x, rotation)
-            w.totals[0] = total
-        g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
-        kinetic, potential = 0.0, 0.0
-        for v in range(k.counts[0]):
-            kinetic += 0.5 * k.mass[v] * k.v[v].norm_sqr()
-            potential -= (k.mass[v] * g + k.external[v]).dot(k.x[v])
-        w.totals[2] = kinetic
-        w.totals[3] = potential
-    return ti.Vector([w.totals[2] + w.totals[0], w.totals[3], w.totals[1]])
+        _begin(k, o, tol)
+        _evaluate_serial(k, w, o.rotation, True, previous, edited, AT_START)
+        _solve_serial(k, o)
+        _end(k)
+        _evaluate_serial(k, w, o.rotation, False, 1 - previous, 0, AT_END)
+    report = _report(k)
+    out = ti.Vector.zero(ti.f64, REPORT_SIZE + 6)
+    for i in ti.static(range(REPORT_SIZE)):
+        out[i] = report[i]
+    for i in ti.static(range(6)):
+        out[REPORT_SIZE + i] = w.totals[AT_START + i]
+    return out
 
 
-ENERGY = replayed(_energy)
+ENERGY, CHECKED_SERIAL = replayed(_energy), replayed(_checked_serial)
 
 
 class EnergyControl:
     """Energy-checked steps of one ImplicitEuler (its `dt`, gravity and applied forces)."""
 
-    def __init__(self, solver, tolerance: float = TOLERANCE, max_halvings: int = MAX_HALVINGS):
+    def __init__(self, solver, tolerance: float = TOLERANCE, max_halvings: int = MAX_HALVINGS, fused: bool = True):
         if not tolerance >= 0:
             raise TissueError(f"tolerance: must be ≥ 0, got {tolerance!r}")
         if not (isinstance(max_halvings, int) and max_halvings >= 0):
             raise TissueError(f"max_halvings: must be an integer ≥ 0, got {max_halvings!r}")
         self.solver, self.tolerance, self.max_halvings = solver, tolerance, max_halvings
+        # Where the solver runs serially, the evaluations in the step's launch (False: launches of
+        # their own, as elsewhere; the benchmarks' and tests' comparison).
+        self.fused = fused
         self.evaluations = 0        # elastic energies evaluated afresh (the others reused)
         self._work = None
         self._shape = None          # the model's capacities the work is sized for
@@ -107,9 +179,15 @@ class EnergyControl:
             real = backend.current().real
             vec3 = ti.types.vector(3, real)
             self._work = ENERGY_WORK(per_element=ti.ndarray(real, shape[1]), seen_x=ti.ndarray(vec3, (2, shape[0])),
-                                     seen_v=ti.ndarray(vec3, (2, shape[0])), totals=ti.ndarray(real, 4))
+                                     seen_v=ti.ndarray(vec3, (2, shape[0])), totals=ti.ndarray(real, TOTALS))
             self._shape, self._edits = shape, None
         return self._work
+
+    def _edited(self) -> int:
+        """1 if the model was edited since the last evaluation (its energy not to be reused)."""
+        edited = int(self._edits != self.solver.model.edits)
+        self._edits = self.solver.model.edits
+        return edited
 
     def energy(self) -> tuple[float, float]:
         """(kinetic + elastic, the potential of gravity and the applied forces) at the solver's
@@ -117,9 +195,9 @@ class EnergyControl:
         solver = self.solver
         k = solver._step_pack()
         w = self._work_pack()
-        edited = int(self._edits != solver.model.edits)
-        inner, potential, fresh = ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot, edited)
-        self._slot, self._edits = 1 - self._slot, solver.model.edits
+        inner, potential, fresh = ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot,
+                                         self._edited())
+        self._slot = 1 - self._slot
         self.evaluations += int(fresh)
         return float(inner), float(potential)
 
@@ -134,20 +212,19 @@ class EnergyControl:
         dt = solver.dt
         rejections = [0, 0]
         try:
-            self._advance(self.energy(), dt, 0, rejections)
+            self._advance(None, dt, 0, rejections)
         finally:
             if solver.dt != dt:
                 solver.set_parameters(dt=dt)
         solver.stats.count(energy_rejections=rejections[0], energy_unresolved=rejections[1])
 
     def _advance(self, start, dt, depth, rejections):
-        """Step over dt from the state the last evaluation saw (the solver's state, whose energy
-        is `start`); return the energy at the end."""
+        """Step over dt from the solver's state (whose energy is `start`, or None where not yet
+        evaluated); return the energy at the end."""
         solver = self.solver
         if solver.dt != dt:
             solver.set_parameters(dt=dt)
-        solver.step()
-        end = self.energy()
+        start, end = self._checked_step(start)
         gain = (end[0] + end[1]) - (start[0] + start[1])
         if gain <= self.tolerance * max(start[0], end[0]):
             return end
@@ -156,5 +233,21 @@ class EnergyControl:
             return end
         rejections[0] += 1
         solver.set_state(*self._previous_state())
-        middle = self._advance(self.energy(), dt / 2, depth + 1, rejections)
+        middle = self._advance(None, dt / 2, depth + 1, rejections)
         return self._advance(middle, dt / 2, depth + 1, rejections)
+
+    def _checked_step(self, start):
+        """One step of the solver: (the energy at its start, at its end)."""
+        solver = self.solver
+        if not (self.fused and solver.execution == "serial" and not solver.split_stages):
+            if start is None:
+                start = self.energy()
+            solver.step()
+            return start, self.energy()
+        k, o, tol = solver.prepare_step()     # one launch: the evaluations, start and end, in the step's
+        with solver.stats.stage("step"):
+            out = CHECKED_SERIAL(k, o, self._work_pack(), tol, self._slot, self._edited())
+        out = [float(c) for c in out]
+        self.evaluations += int(out[REPORT_SIZE + 2]) + int(out[REPORT_SIZE + 5])
+        solver.record_step(out[:REPORT_SIZE])
+        return tuple(out[REPORT_SIZE:REPORT_SIZE + 2]), tuple(out[REPORT_SIZE + 3:REPORT_SIZE + 5])
