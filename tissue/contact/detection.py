@@ -621,9 +621,10 @@ class Detector:
         res = out[s, slot].astype(np.float64, copy=False)
         k = len(s)
         soft = slot >= no
+        any_soft = bool(others) and soft.any()     # (the slots past the obstacles' are the other bodies')
         other = slot.astype(np.int32)
         triangle = np.full((k, 3), -1, np.int32)
-        if soft.any():
+        if any_soft:
             ob = np.asarray(others, np.int32)[slot[soft] - no]
             other[soft] = ob
             face = res[soft, 10].astype(np.int64)
@@ -644,5 +645,5 @@ class Detector:
                     motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
         return Contacts(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
                         own_weights=weights[s].astype(np.float64, copy=False), other=other, soft=soft, triangle=triangle,
-                        weights=np.where(soft[:, None], res[:, 7:10], 0.0) if soft.any() else np.zeros((k, 3)),
+                        weights=np.where(soft[:, None], res[:, 7:10], 0.0) if any_soft else np.zeros((k, 3)),
                         normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)
