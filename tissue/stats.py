@@ -1,4 +1,4 @@
-"""Per-stage wall times and counters of a simulation (host time after `ti.sync()`)."""
+"""Per-stage wall times and counters of a simulation (host time after `backend.sync()`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ from collections import defaultdict
 from contextlib import contextmanager
 
 import numpy as np
-import taichi as ti
+
+from . import backend
 
 
 class Stats:
@@ -24,7 +25,7 @@ class Stats:
         # already bounds this one's start (a sync costs a few µs, a step of a small mesh 300).
         start = time.perf_counter()
         yield
-        ti.sync()
+        backend.sync()
         self.times[name].append(time.perf_counter() - start)
 
     def count(self, **values: float) -> None:
