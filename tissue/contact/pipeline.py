@@ -517,7 +517,7 @@ class ContactStage:
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
             warm = np.zeros((rows.n_contacts, 3))
             keys = contacts.keys() if keys is None else keys
-            if np.array_equal(self._warm_keys, keys):        # the same contacts as last step (at rest)
+            if _same_bits(self._warm_keys, keys):            # the same contacts as last step (at rest)
                 warm = np.einsum("kij,kj->ki", rows.frames, self._warm_impulses)
             elif len(self._warm_keys):
                 pos = np.searchsorted(self._warm_keys, keys)
