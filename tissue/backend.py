@@ -113,8 +113,8 @@ def current() -> Backend:
 
 def sync() -> None:
     """Wait for the device: call before reading a clock. On the CPU a launch returns when its
-    kernel has run, so there is nothing to wait for (ti.sync would still spend a few µs checking
-    Taichi's fields: a contact step syncs six times)."""
+    kernel has run, so there is nothing to wait for (ti.sync would still check Taichi's fields,
+    and a contact step syncs six times)."""
     if current().arch != "cpu":
         ti.sync()
 

@@ -43,8 +43,8 @@ class Stats:
 
 
 class _Stage:
-    """Stats.stage's timer (a class: a generator-based context manager costs ~1 µs more a use,
-    a dozen uses a step)."""
+    """Stats.stage's timer (a class: a generator-based context manager costs several times more a
+    use, and a step makes a dozen)."""
 
     __slots__ = ("times", "name", "start")
 

@@ -145,7 +145,7 @@ class FrictionalContactSolver:
         contacts changed. Returns the solver."""
         check = self.check
         factored = isinstance(W, FactoredDelassus)
-        sparse = not factored and not isinstance(W, np.ndarray) and sp.issparse(W)     # (asked once: ~1 µs a time)
+        sparse = not factored and not isinstance(W, np.ndarray) and sp.issparse(W)     # (scipy's check, asked once)
         if factored:
             if check:
                 for name in ("blocks", "Q", "diagonal"):
