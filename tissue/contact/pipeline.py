@@ -569,8 +569,9 @@ class _KeptRows:
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     """a and b hold the same numbers bit for bit (np.array_equal would take -0.0 for 0.0, and
-    costs several times more on arrays of a few dozen contacts)."""
-    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    costs several times more on arrays of a few dozen contacts); the same array (detection's
+    hits at rest, kept: tissue.contact.detection) does."""
+    return a is b or (a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes())
 
 
 class _Edited:
