@@ -944,8 +944,8 @@ def test_detection_hands_last_steps_hits_at_rest(damped_block):
     """Detection's read-out keeps a body's hits on obstacles: while they are last step's, their
     identifying arrays (body, sample, nodes, weights, ...) are last step's arrays (the contact
     stage finds them the same at once), and every step's contacts equal a new detector's on the
-    same positions, field for field, bit for bit, also when the hits change (the tilted block
-    settling; measured: kept from step 3 on)."""
+    same positions, field for field, bit for bit (and the keys the stage then takes as last
+    step's), also when the hits change (the tilted block settling; measured: kept from step 3 on)."""
     from dataclasses import fields
 
     from tissue.contact.detection import Contacts, Detector
@@ -964,6 +964,7 @@ def test_detection_hands_last_steps_hits_at_rest(damped_block):
         contacts = stage.step().contacts
         for f in fields(Contacts):
             assert getattr(contacts, f.name).tobytes() == getattr(fresh, f.name).tobytes(), f"step {step}: {f.name}"
+        assert stage._kept.keys.tobytes() == fresh.keys().tobytes(), f"step {step}: keys"
         if previous is not None:
             (kept if contacts.nodes is previous.nodes else changed).append(step)
         previous = contacts

@@ -310,7 +310,7 @@ class FrictionalContactSolver:
         self._write(self._q, q)
         # Start inside the cones: Jacobi's relaxation keeps r where it starts.
         self._write(self._r, project_cone(r0.reshape(-1, 3), self.mu).ravel())
-        q_norm = float(np.linalg.norm(q))
+        q_norm = math.sqrt(q.dot(q))                  # (np.linalg.norm's formula, without its checks)
         tol_abs = tol * (1.0 + q_norm)
         iterations = getattr(self, f"_{self.method}")(max_iterations, tol_abs)
         backend.sync()

@@ -357,7 +357,7 @@ class ContactStage:
                         contact_storage_growths=self.storage_growths)
             return self.last
 
-        keys = contacts.keys()
+        keys = self._keys(contacts)
         with stats.stage("constraints"):
             free = [x[:, :3] for x in self.detector.state]     # read by the detection's launches
             prev = [x[:, 3:] for x in self.detector.state]
@@ -402,6 +402,17 @@ class ContactStage:
                     penetration=float(max(0.0, -normal.min())) if nc else 0.0,
                     contact_storage_growths=self.storage_growths)
         return self.last
+
+    def _keys(self, contacts: Contacts) -> np.ndarray:
+        """contacts.keys(): the kept rows' when detection handed last step's arrays they are made
+        from (hits at rest, tissue.contact.detection)."""
+        kept = self._kept
+        if kept is not None:
+            c = kept.contacts
+            if contacts.body is c.body and contacts.sample is c.sample and contacts.soft is c.soft \
+                    and contacts.other is c.other:
+                return kept.keys
+        return contacts.keys()
 
     def _jacobian(self, contacts: Contacts, keys: np.ndarray) -> "_KeptRows":
         """The rows' Jacobian, μ, the bodies the rows touch and their JDS: last step's when the
