@@ -907,7 +907,9 @@ def test_rows_of_contacts_at_rest_are_kept_and_rebuilt_when_they_change(damped_b
     JDS equal those built from scratch on the step's contacts, bit for bit; they are kept at rest
     (measured: 56 of 60 steps) and built anew when the contacts change (the block, tilted 5 % and
     1 mm up, settles: steps 1 and 2) or the friction given does (the plane's μ set to 0 at step
-    45: tangent rows empty)."""
+    45: tangent rows empty); W is kept as its factors once the settings ask for it (step 50),
+    the rows still kept."""
+    from tissue.contact import FactoredDelassus
     from tissue.contact.constraints import JaggedDiagonal, build_rows
 
     solver = reset(damped_block)
@@ -919,8 +921,11 @@ def test_rows_of_contacts_at_rest_are_kept_and_rebuilt_when_they_change(damped_b
     for step in range(60):
         if step == 45:
             plane.friction = 0.0
+        if step == 50:
+            stage.settings.delassus = "factored"
         solver.step()
         r = stage.step()
+        assert isinstance(r.delassus, FactoredDelassus) == (step >= 50), step     # ("auto" forms W here)
         free = [x[:, :3] for x in stage.detector.state]
         prev = [x[:, 3:] for x in stage.detector.state]
         mu = 0.0 if step >= 45 else 0.5

@@ -244,6 +244,7 @@ class ContactStage:
         """Take body `body`'s rest compliance from a tissue.cutting.CuttingCompliance (kept exact
         through its cuts by low-rank updates) instead of inverting it anew after each cut."""
         self.compliance[body].follow(compliance)
+        self._kept = None                       # (its factor's size may change: _KeptRows.factors_pay)
 
     # ---- queries ------------------------------------------------------------------------------
 
@@ -367,7 +368,7 @@ class ContactStage:
 
         with stats.stage("compliance"):
             self._flip = 1 - self._flip
-            if s.compliance == "warped" and self._factors_pay(rows, touched, jds):
+            if s.compliance == "warped" and kept.factors_pay(self):
                 W = self._factored(rows, touched, jds)
             elif s.compliance == "warped":
                 W = self._delassus_buffer(rows.n_rows, self._np)
@@ -505,8 +506,10 @@ class ContactStage:
             bb = scipy.linalg.cho_factor(W[m:, m:])
             Wc = Wc - W[:m, m:] @ scipy.linalg.cho_solve(bb, W[m:, :m])
             qc = qc - W[:m, m:] @ scipy.linalg.cho_solve(bb, q[m:])
-        info, self._gaps = None, np.zeros(m)
-        if m:
+        info = None
+        if not m:
+            self._gaps = np.zeros(0)
+        else:
             # The problem on W / w̄ (w̄ the mean of its diagonal). Frictionless contacts have empty
             # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
             # (with μ = 0 it never uses them: r_t = 0).
@@ -526,15 +529,16 @@ class ContactStage:
                 np.multiply(Wc, 1.0 / scale, out=scaled)
                 for j in (1, 2) if len(t) else ():
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
-            warm = np.zeros((rows.n_contacts, 3))
             keys = contacts.keys() if keys is None else keys
             if _same_bits(self._warm_keys, keys):            # the same contacts as last step (at rest)
                 warm = np.einsum("kij,kj->ki", rows.frames, self._warm_impulses)
-            elif len(self._warm_keys):
-                pos = np.searchsorted(self._warm_keys, keys)
-                pos = np.minimum(pos, len(self._warm_keys) - 1)
-                hit = self._warm_keys[pos] == keys
-                warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
+            else:
+                warm = np.zeros((rows.n_contacts, 3))
+                if len(self._warm_keys):
+                    pos = np.searchsorted(self._warm_keys, keys)
+                    pos = np.minimum(pos, len(self._warm_keys) - 1)
+                    hit = self._warm_keys[pos] == keys
+                    warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
             reduce = self._last_sweeps > REDUCE_ABOVE
             solver = self._solver
             if solver is None or solver.method != s.method:
@@ -544,7 +548,7 @@ class ContactStage:
                 solver.renew(scaled, mu, reduce)
             r, info = solver.solve(qc, s.tolerance, s.max_iterations, r0=scale * warm.ravel())
             self._last_sweeps = info.iterations
-            if not np.all(np.isfinite(r)):      # (W is not checked on the way in: it is ours)
+            if not np.isfinite(r).all():        # (W is not checked on the way in: it is ours)
                 raise TissueError(f"contact: the frictional contact problem gave non-finite reactions "
                                   f"({rows.n_contacts} contacts); the bodies' state may have diverged (reduce dt)")
             lam[:m] = r / scale
@@ -566,6 +570,15 @@ class _KeptRows:
     mu: np.ndarray
     touched: list
     jds: dict | None
+    _pays: tuple = (None, False)  # ContactStage._factors_pay's answer for these rows, and the setting it had
+
+    def factors_pay(self, stage: "ContactStage") -> bool:
+        """stage._factors_pay for these rows, asked again only when the stage's `delassus` setting
+        changed (the rest it reads are the rows, the attachments and the compliances, which a
+        stage with other ones does not keep rows across: _follow_edits, follow_compliance)."""
+        if self._pays[0] != stage.settings.delassus:
+            self._pays = (stage.settings.delassus, stage._factors_pay(self.rows, self.touched, self.jds))
+        return self._pays[1]
 
     def same(self, contacts: Contacts, keys: np.ndarray, given_friction: tuple) -> bool:
         """Whether `contacts` give this Jacobian: the same contact points (keys: body, sample,
