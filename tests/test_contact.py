@@ -980,8 +980,10 @@ def test_detection_hands_last_steps_hits_at_rest(damped_block):
 def test_kept_rows_serve_only_the_same_contacts_bit_for_bit(damped_block):
     """The kept Jacobian serves contacts equal to its own bit for bit: a normal or a weight one
     ulp off, or a 0.0 become -0.0 (np.array_equal would take it for 0.0), or another friction
-    given, is other contacts."""
+    given, or an attachment added, is other rows."""
     from dataclasses import replace
+
+    from tissue.contact.constraints import Attachment
 
     solver = reset(damped_block)
     stage = on_plane(solver, friction=0.5)
@@ -989,14 +991,15 @@ def test_kept_rows_serve_only_the_same_contacts_bit_for_bit(damped_block):
     contacts = stage.step().contacts
     kept, given = stage._kept, stage._given_friction()
     same = replace(contacts, **{name: getattr(contacts, name).copy() for name in ("normal", "weights", "own_weights")})
-    assert kept.same(same, same.keys(), given)
-    assert not kept.same(same, same.keys(), (0.3,) + given[1:])
+    assert kept.same(same, same.keys(), given, ())
+    assert not kept.same(same, same.keys(), (0.3,) + given[1:], ())
+    assert not kept.same(same, same.keys(), given, (Attachment(0, 3, point=(0.0, 0.0, 0.0)),))
     for name, index, value in (("normal", (3, 2), np.nextafter(1.0, 2.0)), ("normal", (0, 0), -0.0),
                                ("own_weights", (1, 0), np.nextafter(1.0, 0.0)), ("weights", (2, 1), -0.0)):
         assert contacts.normal[0, 0] == 0.0 and contacts.normal[3, 2] == 1.0
         other = replace(same, **{name: getattr(same, name).copy()})
         getattr(other, name)[index] = value
-        assert not kept.same(other, other.keys(), given), (name, index, value)
+        assert not kept.same(other, other.keys(), given, ()), (name, index, value)
 
 
 @pytest.fixture(scope="module")

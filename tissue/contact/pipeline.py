@@ -419,9 +419,9 @@ class ContactStage:
         """The rows' Jacobian, μ, the bodies the rows touch and their JDS: last step's when the
         contacts are the same ones at the same places (`_KeptRows.same`: a body at rest), else
         built anew."""
-        given = self._given_friction()
+        given, attachments = self._given_friction(), tuple(self.attachments)
         kept = self._kept
-        if kept is not None and kept.same(contacts, keys, given):
+        if kept is not None and kept.same(contacts, keys, given, attachments):
             return kept
         mu = self._friction(contacts, given)
         rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
@@ -429,7 +429,7 @@ class ContactStage:
             rows = self._with_jaws(rows, contacts, mu == 0)
         touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
         jds = {b: JaggedDiagonal(rows, b) for b in touched} if self.settings.compliance == "warped" else None
-        self._kept = _KeptRows(contacts, keys, given, rows, mu, touched, jds)
+        self._kept = _KeptRows(contacts, keys, given, attachments, rows, mu, touched, jds)
         return self._kept
 
     def _with_jaws(self, rows: ConstraintRows, contacts: Contacts, frictionless: np.ndarray) -> ConstraintRows:
@@ -566,6 +566,7 @@ class _KeptRows:
     contacts: Contacts
     keys: np.ndarray
     given_friction: tuple
+    attachments: tuple
     rows: ConstraintRows          # q empty: the step's δ_free is added to it (with_free_values)
     mu: np.ndarray
     touched: list
@@ -580,12 +581,12 @@ class _KeptRows:
             self._pays = (stage.settings.delassus, stage._factors_pay(self.rows, self.touched, self.jds))
         return self._pays[1]
 
-    def same(self, contacts: Contacts, keys: np.ndarray, given_friction: tuple) -> bool:
-        """Whether `contacts` give this Jacobian: the same contact points (keys: body, sample,
-        kind, other) on the same nodes and triangles, at the same weights and normals, bit for
-        bit, and the same friction coefficients given."""
+    def same(self, contacts: Contacts, keys: np.ndarray, given_friction: tuple, attachments: tuple) -> bool:
+        """Whether `contacts` and `attachments` give this Jacobian: the same contact points (keys:
+        body, sample, kind, other) on the same nodes and triangles, at the same weights and
+        normals, bit for bit, the same friction coefficients given and the same attachments."""
         kept = self.contacts
-        return given_friction == self.given_friction and all(
+        return given_friction == self.given_friction and attachments == self.attachments and all(
             _same_bits(a, b) for a, b in ((keys, self.keys), (contacts.nodes, kept.nodes),
                                           (contacts.triangle, kept.triangle), (contacts.own_weights, kept.own_weights),
                                           (contacts.weights, kept.weights), (contacts.normal, kept.normal)))
