@@ -1,13 +1,13 @@
-"""Per-stage wall times and counters of a simulation (host time after `ti.sync()`)."""
+"""Per-stage wall times and counters of a simulation (host time after `backend.sync()`)."""
 
 from __future__ import annotations
 
 import time
 from collections import defaultdict
-from contextlib import contextmanager
 
 import numpy as np
-import taichi as ti
+
+from . import backend
 
 
 class Stats:
@@ -18,14 +18,10 @@ class Stats:
         self.counters: dict[str, float] = {}
         self.history: dict[str, list[float]] = defaultdict(list)
 
-    @contextmanager
-    def stage(self, name: str):
-        # One sync, at the end: stages follow each other, so the previous stage's closing sync
-        # already bounds this one's start (a sync costs a few µs, a step of a small mesh 300).
-        start = time.perf_counter()
-        yield
-        ti.sync()
-        self.times[name].append(time.perf_counter() - start)
+    def stage(self, name: str) -> "_Stage":
+        """`with stats.stage(name):` appends the block's wall time to times[name] (not when it
+        raises)."""
+        return _Stage(self.times, name)
 
     def count(self, **values: float) -> None:
         for key, value in values.items():
@@ -44,3 +40,23 @@ class Stats:
         lines += [f"{k:<{width}}  {v:10.3f}" for k, v in ms.items()]
         lines.append(f"{'total':<{width}}  {sum(ms.values()):10.3f}")
         return "\n".join(lines)
+
+
+class _Stage:
+    """Stats.stage's timer (a class: a generator-based context manager costs several times more a
+    use, and a step makes a dozen)."""
+
+    __slots__ = ("times", "name", "start")
+
+    def __init__(self, times: dict, name: str):
+        self.times, self.name = times, name
+
+    def __enter__(self):
+        self.start = time.perf_counter()
+
+    def __exit__(self, kind, value, traceback):
+        # One sync, at the end: stages follow each other, so the previous stage's closing sync
+        # already bounds this one's start (a sync costs a few µs, a step of a small mesh 300).
+        if kind is None:
+            backend.sync()
+            self.times[self.name].append(time.perf_counter() - self.start)

@@ -474,9 +474,9 @@ class WarpedCompliance:
             return
         self._sizes[N_ROWS] = W.shape[0]
         self.storage.put("sizes", self._sizes, ti.i32)
-        flat = _whole(W)
+        flat, in_place = _whole(W)
         _assemble_replayed(self._pack(), flat, self.serial)
-        if not np.may_share_memory(flat, W):
+        if not in_place:
             W[...] = flat[:W.size].reshape(W.shape)
         self._ready = True
 
@@ -504,17 +504,20 @@ class WarpedCompliance:
         _correct_replayed(pack, self.serial)
 
 
-def _whole(W: np.ndarray) -> np.ndarray:
+def _whole(W: np.ndarray) -> tuple[np.ndarray, bool]:
     """W as flat memory for a kernel: the whole 1-D buffer it is the start of, when it is one
     (the pipeline's, kept between steps: the launch, keyed by the buffer's address and shape,
-    replays whatever W's size), else W flat (a copy if W is not C-contiguous)."""
+    replays whatever W's size), else W flat; and whether that is W's memory (else a copy, W not
+    being C-contiguous, to be copied back)."""
+    if not W.flags.c_contiguous:
+        return np.ascontiguousarray(W).reshape(-1), False
     base = W
     while isinstance(base.base, np.ndarray):
         base = base.base
-    if (W.flags.c_contiguous and base.ndim == 1 and base.flags.c_contiguous and base.dtype == W.dtype
+    if (base.ndim == 1 and base.flags.c_contiguous and base.dtype == W.dtype
             and base.__array_interface__["data"][0] == W.__array_interface__["data"][0]):
-        return base
-    return np.ascontiguousarray(W).reshape(-1)
+        return base, True
+    return W.reshape(-1), True
 
 
 class ExactCompliance:

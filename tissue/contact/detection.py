@@ -492,6 +492,7 @@ class Detector:
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
+        self._kept_hits = {}                      # per body, its last hits on obstacles (_rigid_hits)
         self._bodies = None
         self.state, self._no_state = None, np.zeros((1, 6))
         self.storage = Storage()                  # per body, the ids of its triangle grid's cells
@@ -505,6 +506,7 @@ class Detector:
         nodes, weights = surface_samples(self.faces[body], self.sampling)
         self.samples[body] = (nodes, weights.astype(self._np))
         self._bodies = None
+        self._kept_hits.pop(body, None)
         self.serial = backend.current().arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
 
     def _field(self, body, positions):
@@ -616,22 +618,23 @@ class Detector:
     def _contacts(self, a, out, others, poses, previous_poses) -> "Contacts":
         """The buffer's hits as Contacts, ordered by (sample, kind, other) (np.nonzero's order)."""
         no = len(self.obstacles)
-        nodes, weights = self.samples[a]
         s, slot = np.nonzero(out[:-1, :, 0] < 1e299)        # (none: 1e300, or inf in float32)
         res = out[s, slot].astype(np.float64, copy=False)
         k = len(s)
         soft = slot >= no
-        other = slot.astype(np.int32)
-        triangle = np.full((k, 3), -1, np.int32)
-        if soft.any():
+        if others and soft.any():       # (the slots past the obstacles' are the other bodies')
+            hits = self._hits(a, s, slot, soft)
             ob = np.asarray(others, np.int32)[slot[soft] - no]
-            other[soft] = ob
+            hits["other"][soft] = ob
             face = res[soft, 10].astype(np.int64)
             tri = np.empty((len(ob), 3), np.int32)
             for b in np.unique(ob):
                 sel = ob == b
                 tri[sel] = self.faces[b][face[sel]]
-            triangle[soft] = tri
+            hits["triangle"][soft] = tri
+            hits["weights"] = np.where(soft[:, None], res[:, 7:10], 0.0)
+        else:
+            hits = self._rigid_hits(a, s, slot, soft)
         point = res[:, 4:7]
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
@@ -642,7 +645,24 @@ class Detector:
                     (R1, t1), (R0, t0) = poses[j], previous_poses[j]
                     sel = slot == j
                     motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
-        return Contacts(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
-                        own_weights=weights[s].astype(np.float64, copy=False), other=other, soft=soft, triangle=triangle,
-                        weights=np.where(soft[:, None], res[:, 7:10], 0.0) if soft.any() else np.zeros((k, 3)),
-                        normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)
+        return Contacts(**hits, normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)
+
+    def _hits(self, a, s, slot, soft) -> dict:
+        """What identifies body a's hits (sample s, slot): their Contacts fields body, sample,
+        nodes, own_weights, other, soft, triangle and weights (those of a hit on an obstacle)."""
+        nodes, weights = self.samples[a]
+        k = len(s)
+        return dict(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
+                    own_weights=weights[s].astype(np.float64, copy=False), other=slot.astype(np.int32), soft=soft,
+                    triangle=np.full((k, 3), -1, np.int32), weights=np.zeros((k, 3)))
+
+    def _rigid_hits(self, a, s, slot, soft) -> dict:
+        """`_hits` of hits on obstacles alone: last step's arrays when the hits are the same (a
+        body at rest; the arrays are never written after), so that the contact stage finds them
+        the same at once."""
+        kept = self._kept_hits.get(a)
+        if kept is not None and kept[0].tobytes() == s.tobytes() and kept[1].tobytes() == slot.tobytes():
+            return dict(kept[2])
+        hits = self._hits(a, s, slot, soft)
+        self._kept_hits[a] = (s, slot, hits)
+        return dict(hits)

@@ -47,6 +47,7 @@ tolerances much below 1e-6 are out of reach).
 """
 
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -94,8 +95,8 @@ def _dofs(contacts):
     return (3 * np.asarray(contacts)[:, None] + np.arange(3)).ravel()
 
 
-def _diagonal_blocks(W, n):
-    if sp.issparse(W):
+def _diagonal_blocks(W, n, sparse: bool):
+    if sparse:
         B = sp.bsr_matrix(W, blocksize=(3, 3))
         rows = np.repeat(np.arange(n), np.diff(B.indptr))
         on = B.indices == rows
@@ -144,11 +145,12 @@ class FrictionalContactSolver:
         contacts changed. Returns the solver."""
         check = self.check
         factored = isinstance(W, FactoredDelassus)
+        sparse = not factored and not isinstance(W, np.ndarray) and sp.issparse(W)     # (scipy's check, asked once)
         if factored:
             if check:
                 for name in ("blocks", "Q", "diagonal"):
                     _finite(f"W.{name}", getattr(W, name))
-        elif sp.issparse(W):
+        elif sparse:
             W = sp.csr_matrix(W, dtype=np.float64)
             _finite("W", W.data)
         else:
@@ -171,7 +173,7 @@ class FrictionalContactSolver:
             _finite("mu", mu)
         if check and np.any(mu < 0):
             raise TissueError(f"mu: negative friction coefficient at contact {int(np.argmax(mu < 0))}")
-        D = W.diagonal if factored else _diagonal_blocks(W, n)
+        D = W.diagonal if factored else _diagonal_blocks(W, n, sparse)
         if n and check:
             sym = 0.5 * (D + D.transpose(0, 2, 1))
             lo = np.linalg.eigvalsh(sym)[:, 0]
@@ -183,7 +185,7 @@ class FrictionalContactSolver:
         self.reduce = bool(reduce) and self.method == "gauss_seidel"      # (auto sweeps the whole problem)
         layout = self._layout
         dense = layout == "dense" or (layout == "auto" and (
-            not sp.issparse(W) or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
+            not sparse or W.shape[0] < CSR_MIN_ROWS or W.nnz > CSR_MAX_FILL * W.shape[0] ** 2))
         self.layout = FACTORED if factored else (DENSE if dense else CSR)
         # Jacobi's starting relaxation factor (given, or estimated from the spectrum of D^-1 W).
         self.omega = float(self._omega) if self._omega is not None else (
@@ -240,7 +242,7 @@ class FrictionalContactSolver:
         y = z = none
         dims, scale = [0, 0], 1.0
         if self.layout == DENSE:
-            W = self.W.toarray() if sp.issparse(self.W) else self.W
+            W = self.W if isinstance(self.W, np.ndarray) else self.W.toarray()
             kept = st.get("W", m * m, real)
             if not (st.host and W.flags.c_contiguous and W.dtype == kept.dtype      # written in place: dense_buffer
                     and W.__array_interface__["data"][0] == kept.__array_interface__["data"][0]):
@@ -294,7 +296,7 @@ class FrictionalContactSolver:
             raise TissueError(f"r0: expected shape ({3 * n},) to match W {self.W.shape}, got {r0.shape}")
         if self.check:
             _finite("r0", r0)
-        if not (np.isfinite(tol) and tol > 0):
+        if not (math.isfinite(tol) and tol > 0):
             raise TissueError(f"tol: must be a positive number, got {tol!r}")
         if int(max_iterations) != max_iterations or max_iterations < 0:
             raise TissueError(f"max_iterations: must be a non-negative integer, got {max_iterations!r}")
@@ -308,7 +310,7 @@ class FrictionalContactSolver:
         self._write(self._q, q)
         # Start inside the cones: Jacobi's relaxation keeps r where it starts.
         self._write(self._r, project_cone(r0.reshape(-1, 3), self.mu).ravel())
-        q_norm = float(np.linalg.norm(q))
+        q_norm = math.sqrt(q.dot(q))                  # (np.linalg.norm's formula, without its checks)
         tol_abs = tol * (1.0 + q_norm)
         iterations = getattr(self, f"_{self.method}")(max_iterations, tol_abs)
         backend.sync()

@@ -196,6 +196,9 @@ class RigidObstacle:
             -1, PRIMITIVE_WIDTH)
         self.meshes = [s for s in shapes if isinstance(s, TriangleMesh)]
         self._scenes = None
+        self._rest = (np.eye(3), np.zeros(3))           # the static pose, read-only: pose() hands it out
+        for a in self._rest:
+            a.setflags(write=False)
 
     def surface(self, size: float = 0.3, resolution: int = 16):
         """(points, triangles) of all its shapes, in its own frame, for drawing."""
@@ -230,7 +233,7 @@ class RigidObstacle:
 
     def pose(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         if self.motion is None:
-            return np.eye(3), np.zeros(3)
+            return self._rest
         return as_pose(self.motion(float(time)))
 
     # ---- triangle meshes: closest points on the host (open3d, imported only when used) ----------

@@ -244,6 +244,7 @@ class ContactStage:
         """Take body `body`'s rest compliance from a tissue.cutting.CuttingCompliance (kept exact
         through its cuts by low-rank updates) instead of inverting it anew after each cut."""
         self.compliance[body].follow(compliance)
+        self._kept = None                       # (its factor's size may change: _KeptRows.factors_pay)
 
     # ---- queries ------------------------------------------------------------------------------
 
@@ -357,7 +358,7 @@ class ContactStage:
                         contact_storage_growths=self.storage_growths)
             return self.last
 
-        keys = contacts.keys()
+        keys = self._keys(contacts)
         with stats.stage("constraints"):
             free = [x[:, :3] for x in self.detector.state]     # read by the detection's launches
             prev = [x[:, 3:] for x in self.detector.state]
@@ -367,7 +368,7 @@ class ContactStage:
 
         with stats.stage("compliance"):
             self._flip = 1 - self._flip
-            if s.compliance == "warped" and self._factors_pay(rows, touched, jds):
+            if s.compliance == "warped" and kept.factors_pay(self):
                 W = self._factored(rows, touched, jds)
             elif s.compliance == "warped":
                 W = self._delassus_buffer(rows.n_rows, self._np)
@@ -403,13 +404,24 @@ class ContactStage:
                     contact_storage_growths=self.storage_growths)
         return self.last
 
+    def _keys(self, contacts: Contacts) -> np.ndarray:
+        """contacts.keys(): the kept rows' when detection handed last step's arrays they are made
+        from (hits at rest, tissue.contact.detection)."""
+        kept = self._kept
+        if kept is not None:
+            c = kept.contacts
+            if contacts.body is c.body and contacts.sample is c.sample and contacts.soft is c.soft \
+                    and contacts.other is c.other:
+                return kept.keys
+        return contacts.keys()
+
     def _jacobian(self, contacts: Contacts, keys: np.ndarray) -> "_KeptRows":
         """The rows' Jacobian, μ, the bodies the rows touch and their JDS: last step's when the
         contacts are the same ones at the same places (`_KeptRows.same`: a body at rest), else
         built anew."""
-        given = self._given_friction()
+        given, attachments = self._given_friction(), tuple(self.attachments)
         kept = self._kept
-        if kept is not None and kept.same(contacts, keys, given):
+        if kept is not None and kept.same(contacts, keys, given, attachments):
             return kept
         mu = self._friction(contacts, given)
         rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
@@ -417,7 +429,7 @@ class ContactStage:
             rows = self._with_jaws(rows, contacts, mu == 0)
         touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
         jds = {b: JaggedDiagonal(rows, b) for b in touched} if self.settings.compliance == "warped" else None
-        self._kept = _KeptRows(contacts, keys, given, rows, mu, touched, jds)
+        self._kept = _KeptRows(contacts, keys, given, attachments, rows, mu, touched, jds)
         return self._kept
 
     def _with_jaws(self, rows: ConstraintRows, contacts: Contacts, frictionless: np.ndarray) -> ConstraintRows:
@@ -494,8 +506,10 @@ class ContactStage:
             bb = scipy.linalg.cho_factor(W[m:, m:])
             Wc = Wc - W[:m, m:] @ scipy.linalg.cho_solve(bb, W[m:, :m])
             qc = qc - W[:m, m:] @ scipy.linalg.cho_solve(bb, q[m:])
-        info, self._gaps = None, np.zeros(m)
-        if m:
+        info = None
+        if not m:
+            self._gaps = np.zeros(0)
+        else:
             # The problem on W / w̄ (w̄ the mean of its diagonal). Frictionless contacts have empty
             # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
             # (with μ = 0 it never uses them: r_t = 0).
@@ -515,15 +529,16 @@ class ContactStage:
                 np.multiply(Wc, 1.0 / scale, out=scaled)
                 for j in (1, 2) if len(t) else ():
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
-            warm = np.zeros((rows.n_contacts, 3))
             keys = contacts.keys() if keys is None else keys
-            if np.array_equal(self._warm_keys, keys):        # the same contacts as last step (at rest)
+            if _same_bits(self._warm_keys, keys):            # the same contacts as last step (at rest)
                 warm = np.einsum("kij,kj->ki", rows.frames, self._warm_impulses)
-            elif len(self._warm_keys):
-                pos = np.searchsorted(self._warm_keys, keys)
-                pos = np.minimum(pos, len(self._warm_keys) - 1)
-                hit = self._warm_keys[pos] == keys
-                warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
+            else:
+                warm = np.zeros((rows.n_contacts, 3))
+                if len(self._warm_keys):
+                    pos = np.searchsorted(self._warm_keys, keys)
+                    pos = np.minimum(pos, len(self._warm_keys) - 1)
+                    hit = self._warm_keys[pos] == keys
+                    warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
             reduce = self._last_sweeps > REDUCE_ABOVE
             solver = self._solver
             if solver is None or solver.method != s.method:
@@ -533,7 +548,7 @@ class ContactStage:
                 solver.renew(scaled, mu, reduce)
             r, info = solver.solve(qc, s.tolerance, s.max_iterations, r0=scale * warm.ravel())
             self._last_sweeps = info.iterations
-            if not np.all(np.isfinite(r)):      # (W is not checked on the way in: it is ours)
+            if not np.isfinite(r).all():        # (W is not checked on the way in: it is ours)
                 raise TissueError(f"contact: the frictional contact problem gave non-finite reactions "
                                   f"({rows.n_contacts} contacts); the bodies' state may have diverged (reduce dt)")
             lam[:m] = r / scale
@@ -551,25 +566,37 @@ class _KeptRows:
     contacts: Contacts
     keys: np.ndarray
     given_friction: tuple
+    attachments: tuple
     rows: ConstraintRows          # q empty: the step's δ_free is added to it (with_free_values)
     mu: np.ndarray
     touched: list
     jds: dict | None
+    _pays: tuple = (None, False)  # ContactStage._factors_pay's answer for these rows, and the setting it had
 
-    def same(self, contacts: Contacts, keys: np.ndarray, given_friction: tuple) -> bool:
-        """Whether `contacts` give this Jacobian: the same contact points (keys: body, sample,
-        kind, other) on the same nodes and triangles, at the same weights and normals, bit for
-        bit, and the same friction coefficients given."""
+    def factors_pay(self, stage: "ContactStage") -> bool:
+        """stage._factors_pay for these rows, asked again only when the stage's `delassus` setting
+        changed (the rest it reads are the rows, the attachments and the compliances, which a
+        stage with other ones does not keep rows across: _follow_edits, follow_compliance)."""
+        if self._pays[0] != stage.settings.delassus:
+            self._pays = (stage.settings.delassus, stage._factors_pay(self.rows, self.touched, self.jds))
+        return self._pays[1]
+
+    def same(self, contacts: Contacts, keys: np.ndarray, given_friction: tuple, attachments: tuple) -> bool:
+        """Whether `contacts` and `attachments` give this Jacobian: the same contact points (keys:
+        body, sample, kind, other) on the same nodes and triangles, at the same weights and
+        normals, bit for bit, the same friction coefficients given and the same attachments."""
         kept = self.contacts
-        return (given_friction == self.given_friction and np.array_equal(keys, self.keys)
-                and np.array_equal(contacts.nodes, kept.nodes) and np.array_equal(contacts.triangle, kept.triangle)
-                and _same_bits(contacts.own_weights, kept.own_weights) and _same_bits(contacts.weights, kept.weights)
-                and _same_bits(contacts.normal, kept.normal))
+        return given_friction == self.given_friction and attachments == self.attachments and all(
+            _same_bits(a, b) for a, b in ((keys, self.keys), (contacts.nodes, kept.nodes),
+                                          (contacts.triangle, kept.triangle), (contacts.own_weights, kept.own_weights),
+                                          (contacts.weights, kept.weights), (contacts.normal, kept.normal)))
 
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    """a and b hold the same numbers bit for bit (np.array_equal takes -0.0 for 0.0)."""
-    return a.dtype == b.dtype and np.array_equal(a.view(f"u{a.itemsize}"), b.view(f"u{b.itemsize}"))
+    """a and b hold the same numbers bit for bit (np.array_equal would take -0.0 for 0.0, and
+    costs several times more on arrays of a few dozen contacts); the same array (detection's
+    hits at rest, kept: tissue.contact.detection) does."""
+    return a is b or (a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes())
 
 
 class _Edited:
