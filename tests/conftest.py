@@ -8,6 +8,10 @@ import os
 import pytest
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+# BLAS on one thread, as `tissue run` has it (tissue/cli.py): OpenBLAS's threads wait on Taichi's
+# and on each other, and the dense set-up of a contact or cutting test then takes seconds. Read when
+# numpy loads OpenBLAS: here, before any test module imports numpy.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -45,7 +45,7 @@ def test_memoised_positions_equal_taichi_own(monkeypatch):
         try:
             compared.append(memo == frontend._original_pos_info(ctx, node))
         finally:
-            ast_transformer_utils.TextWrapper = frontend._Wrapper
+            ast_transformer_utils.TextWrapper = frontend._wrapper
         return memo
 
     monkeypatch.setattr(ast_transformer_utils.ASTTransformerContext, "get_pos_info", checked)

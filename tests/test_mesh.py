@@ -256,8 +256,9 @@ def test_gmsh1_undefined_label_is_named(tmp_path):
 
 
 def test_vtu_round_trip(tmp_path):
-    """Our VTU writer's file reads back through meshio's reader bit for bit, dtypes included."""
-    mesh = box(size=(1.0, 2.0, 3.0), cells=(2, 3, 4))
+    """Our VTU writer's file reads back through meshio's reader bit for bit, dtypes included (arrays
+    of one compressed block and of several)."""
+    mesh = box(size=(1.0, 2.0, 3.0), cells=(12, 13, 14))
     path = tmp_path / "out" / "box.vtu"
     rng = np.random.default_rng(0)
     point_data = {"u": rng.standard_normal(mesh.points.shape), "u_magnitude": rng.random(mesh.n_points),
@@ -283,7 +284,7 @@ def test_vtu_reads_in_vtk(tmp_path):
     vtk = pytest.importorskip("vtk")
     from vtk.util.numpy_support import vtk_to_numpy
 
-    mesh = box(cells=(2, 2, 2))
+    mesh = box(cells=(10, 10, 10))
     u = np.random.default_rng(1).standard_normal(mesh.points.shape)
     write_vtu(tmp_path / "box.vtu", mesh.points, mesh.tets, point_data={"u": u}, cell_data={"volume": mesh.volumes})
     reader = vtk.vtkXMLUnstructuredGridReader()

@@ -28,7 +28,7 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
 # BLAS on one thread unless OPENBLAS_NUM_THREADS says otherwise: OpenBLAS's threads wait on each
 # other whenever the cores are busy (Taichi's own threads, other processes), and then a dense
 # factorisation of a few hundred rows at start-up (the rest compliance) takes seconds instead of
-# milliseconds (bench.startup's BLAS runs). Read when numpy and scipy load it: before any import of them.
+# milliseconds (bench/blas_threads.py). Read when numpy and scipy load it: before any import of them.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__  # noqa: E402

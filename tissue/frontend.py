@@ -8,7 +8,7 @@ CG and multigrid hundreds of times). Most of that time went to two pure function
 
 - `ASTTransformerContext.get_pos_info`, the "File …, line …" text with a caret line, wrapped by
   `textwrap` to 80 columns, built for every name and statement for Taichi's error messages (where
-  a node is new to the memo, its lines go through `_Wrapper`: a line that fits in 80 columns
+  a node is new to the memo, its lines go through one `_Wrapper`: a line that fits in 80 columns
   needs no wrapping, only its trailing spaces dropped);
 - `inspect.getsourcelines` / `getsourcefile`, which tokenise the module to find a function.
 
@@ -60,14 +60,11 @@ _pos_info: dict[tuple, str] = {}
 
 
 def _position_key(ctx, node) -> tuple:
-    """Everything `get_pos_info` reads: the node's span and the source lines it prints (a loop,
-    branch or definition up to its body's first line, as it does)."""
-    if type(node).__name__ in ("For", "While", "FunctionDef", "If"):
-        end = max(node.body[0].lineno - 1, node.lineno)
-    else:
-        end = node.end_lineno
-    return (ctx.file, ctx.lineno_offset, ctx.indent, ctx.func.func.__name__, type(node).__name__,
-            node.lineno, node.end_lineno, node.col_offset, node.end_col_offset, tuple(ctx.src[node.lineno - 1:end]))
+    """What `get_pos_info`'s text is a function of: the node's kind and span in the source of the
+    Python function being transformed (whose lines, read once by `_getsourcelines`, do not change)
+    and where that source sits (line offset, indentation)."""
+    return (ctx.func.func, ctx.lineno_offset, ctx.indent, type(node).__name__, node.lineno, node.end_lineno,
+            node.col_offset, node.end_col_offset)
 
 
 def _get_pos_info(ctx, node) -> str:
@@ -88,6 +85,12 @@ class _Wrapper(textwrap.TextWrapper):
             line = text.rstrip(" ")
             return [line] if line else []
         return super().wrap(text)
+
+
+@functools.cache
+def _wrapper(width: int = 70) -> _Wrapper:
+    """`get_pos_info`'s `TextWrapper(width=80)`, made once: wrapping changes no state of the wrapper."""
+    return _Wrapper(width=width)
 
 
 @functools.cache
@@ -234,7 +237,7 @@ def install() -> None:
     """Memoise the front end's source reads, positions and line filling, replace the
     decorators' class check, and build the small-matrix operations directly (idempotent)."""
     ast_transformer_utils.ASTTransformerContext.get_pos_info = _get_pos_info
-    ast_transformer_utils.TextWrapper = _Wrapper          # the module's own name for the class
+    ast_transformer_utils.TextWrapper = _wrapper          # the module's own name for the class
     kernel_impl.getsourcelines = _getsourcelines_list
     kernel_impl.getsourcefile = functools.cache(_original_sourcefile)
     # kernel_impl's own name for the textwrap module: fill memoised, the rest as is.

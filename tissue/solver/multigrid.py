@@ -241,7 +241,7 @@ def _chebyshev_step(k: ti.template(), o: ti.template(), z: ti.template(), step):
 @ti.func
 def _coarse_correction(k: ti.template(), z: ti.template()):
     """z += R P A_c⁻¹ Pᵀ Rᵀ res. The coarse vectors are flat (coarse node c's dofs at 3c, 3c+1, 3c+2),
-    so that the dense product is one scalar dot product per row: less code to compile than 3×3 blocks."""
+    so that the dense product is one scalar dot product per row of A_c⁻¹, 3·nc rows to share out."""
     for c in range(k.coarse_count[0]):  # restriction: a gather over the fine nodes around c
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
