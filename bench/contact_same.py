@@ -16,6 +16,7 @@ start (a commit before it has no such field). Writes bench/results/contact_same.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
