@@ -1,6 +1,6 @@
 """Whether the contact stage of this checkout computes the same numbers as another commit's, bit for bit.
 
-    python -m bench.contact_same [--other f0c7493]
+    python -m bench.contact_same [--other f0c7493] [--cold] [--out contact_same]
 
 For changes meant to make the contact stage faster without changing its results (its Python and
 numpy glue): both checkouts run the same scenes, by this checkout's bench/contact.py over each
@@ -9,12 +9,14 @@ sweeps are compared with np.array_equal (a -0.0 equals a 0.0). Scenes: SOFA's fl
 compliance warping (60 steps with the scenes' step control, 30 without), with the exact compliance
 (20 steps), and `liver_press` (45 steps, its W kept as factors, soft–soft and soft–rigid rows).
 Prints the scenes' largest row counts and the differing entries; exits with 1 if any differ.
-Writes bench/results/contact_same.json.
+`--cold`: this checkout's CG starts from zero (`solver.cg_warm_start=false`), as before the warm
+start (a commit before it has no such field). Writes bench/results/contact_same.json (or OUT.json).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -23,23 +25,24 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import alternate_with_commit, machine, print_machine, write_results
+from bench.common import ROOT, alternate_with_commit, machine, print_machine, write_results
 
 SCENES = (("floor", "warped", None, 60), ("floor_no_step_control", "warped", "none", 30),
           ("floor_exact", "exact", None, 20), ("liver_press", "warped", None, 45))
 
 # Runs inside a checkout, with this checkout's bench/contact.py over the checkout's own tissue.
 CHILD = r"""
-import importlib.util, os, sys
+import importlib.util, json, os, sys
 import numpy as np
 from tissue import backend
 backend.init("cpu")
 spec = importlib.util.spec_from_file_location("bench_contact_same", os.environ["TISSUE_BENCH_CONTACT"])
 bc = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(bc)
+overrides = json.loads(os.environ["TISSUE_BENCH_OVERRIDES"])
 out = {}
 for tag, compliance, control, steps in SCENES:
-    sim = bc.press(compliance) if tag == "liver_press" else bc.floor_scene(compliance, control)
+    sim = bc.press(compliance, overrides) if tag == "liver_press" else bc.floor_scene(compliance, control, overrides)
     stage = next(s for s in sim.stages if s.name == "contact").stage
     for i in range(steps):
         sim.step()
@@ -52,9 +55,9 @@ np.savez(sys.argv[1], **out)
 """
 
 
-def run(checkout: Path, folder: Path) -> Path:
+def run(checkout: Path, folder: Path, overrides: list[str]) -> Path:
     path = folder / f"{checkout.name}.npz"
-    env = dict(os.environ, PYTHONPATH=str(checkout),
+    env = dict(os.environ, PYTHONPATH=str(checkout), TISSUE_BENCH_OVERRIDES=json.dumps(overrides),
                TISSUE_BENCH_CONTACT=str(Path(__file__).resolve().with_name("contact.py")))
     done = subprocess.run([sys.executable, "-c", f"SCENES = {SCENES!r}\n" + CHILD, str(path)], cwd=checkout,
                           env=env, capture_output=True, text=True)
@@ -75,17 +78,21 @@ def compare(this: Path, other: Path) -> dict:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--other", default="f0c7493", help="the commit to compare with")
+    parser.add_argument("--cold", action="store_true", help="this checkout's CG started from zero")
+    parser.add_argument("--out", default="contact_same", help="the results' name under bench/results")
     args = parser.parse_args(argv)
+    cold = ["solver.cg_warm_start=false"] if args.cold else []
     info = machine()
     print_machine(info)
     with tempfile.TemporaryDirectory(prefix="tissue-contact-same-") as tmp:
         folder = Path(tmp)
-        other, runs = alternate_with_commit(args.other, 1, lambda checkout: run(checkout, folder),
+        other, runs = alternate_with_commit(args.other, 1,
+                                            lambda checkout: run(checkout, folder, cold if checkout == ROOT else []),
                                             lambda path: path.name, "tissue-contact-same-")
         result = compare(runs["this"][0], runs["other"][0])
     print(f"largest row counts {result['rows_max']}; {result['entries']} arrays, "
           f"{len(result['differ'])} differ from {other}'s" + (f": {result['differ'][:10]}" if result["differ"] else ""))
-    write_results("contact_same", {"machine": info, "other": other, **result})
+    write_results(args.out, {"machine": info, "other": other, "cold": args.cold, **result})
     sys.exit(1 if result["differ"] else 0)
 
 

@@ -6,9 +6,10 @@ the first step of each, which compiles, is left out). Per setting: the median wa
 step (every stage, ti.sync() at each stage's end) and of the free motion (where the check runs),
 the process's CPU ms per step (its blocks of steps, median; on this shared machine the steadier
 figure), and the steps the check rejected (each redone as two half steps). Where it rejects none
-(the typical case) the check costs its energy evaluation: one kernel launch, a signed
-principal-stretch eigensolve per element (at a step's end; its start reuses it unless contact
-moved the state).
+(the typical case) the check costs its energy evaluations: a signed principal-stretch eigensolve per
+element at a step's end (its start reuses it unless contact moved the state; then, where the solver
+runs serially, it is computed from the step's own rotations), in the step's launch where the
+solver runs serially, a launch of its own at each otherwise.
 
     python -m bench.step_control [--rounds 5] [--steps 10] [--scenes beam liver liver_press]
 """

@@ -184,8 +184,8 @@ def test_checked_serial_step_matches_separate_evaluations(backend, rotation):
     x0, v0, fixed = stability.initial_state(cell, mesh)
     runs = []
     for fused in (True, False):
-        solver = ImplicitEuler(CorotationalFEM(mesh, material, rotation=rotation), cell["dt"], gravity=stability.GRAVITY,
-                               rayleigh_mass=0.1, rayleigh_stiffness=0.1, execution="serial",
+        solver = ImplicitEuler(CorotationalFEM(mesh, material, rotation=rotation), cell["dt"],
+                               gravity=stability.GRAVITY, rayleigh_mass=0.1, rayleigh_stiffness=0.1, execution="serial",
                                cg=CGSettings(max_iterations=100, tolerance=1e-6, preconditioner="jacobi"))
         solver.set_fixed(fixed)
         solver.set_state(x0, v0)
