@@ -8,7 +8,7 @@ The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 te
 scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations; the energy
 check `tissue.solver.step_control`, `STEP_CONTROL`; a cell's "cg" and "step_control" entries
 override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
-end (E ≤ 1e3 Pa), the special cells and the impacts onto a floor with "invertible" (tissue.fem:
+end (E ≤ 1e3 Pa), the special cells and the floor's impacts, jerk and rest with "invertible" (tissue.fem:
 "polar" plus a compression limit). Cells:
   material   E 1e2 … 1e8 Pa × ν 0 … 0.499 × dt 1e-3 … 0.5 s, from rest, for max(20, 1 s / dt)
              steps (at most 1,000). The self-weight strain ρ g L / E is 9.8 at 1e2 Pa, 0.98 at
@@ -34,7 +34,8 @@ the scene defaults: alarm distance 2 mm, tolerance 1e-6 m, 100 sweeps):
              distance, the top vertices are within it of the floor in the free motion too: 3,465
              rows (722 contacts pushing);
   impact and jerk with a floor under the cantilever (its bottom face resting on it), μ = 0.5; and
-             the 10 m/s impact onto it again at dt 2 ms (the dt its refusal at 0.04 s names).
+             the 10 m/s impact onto it again at dt 2 ms (the dt its refusal at 0.04 s names);
+  rest       the clamped cantilever from rest on that floor, sagging onto it (μ = 0.5).
 Each cell ends as (`classify`)
   bounded    finite at every step, and the total energy E (kinetic + elastic + gravity's
              potential) never above its start plus the work W done on the body by external and
@@ -103,7 +104,7 @@ def material_cells(young=YOUNG, poisson=POISSON, dt=STEPS, rotations=ROTATIONS) 
 
 def invertible_cells(young=SOFT, poisson=POISSON, dt=STEPS) -> list[dict]:
     """The soft end, the special cells and the contact impacts and jerk with "invertible"."""
-    impacts = [c for c in contact_cells((INVERTIBLE,)) if c["case"] in ("impact", "jerk")]
+    impacts = [c for c in contact_cells((INVERTIBLE,)) if c["case"] in ("impact", "jerk", "rest")]
     return material_cells(young, poisson, dt, (INVERTIBLE,)) + special_cells((INVERTIBLE,)) + impacts
 
 
@@ -118,7 +119,7 @@ def contact_cells(rotations=ROTATIONS) -> list[dict]:
     cells = [dict(case="friction", mode=m, friction=mu, steps=250) for m in ("floor", "slope") for mu in FRICTION]
     cells += [dict(case="press", mode="plate", friction=0.5, steps=100)]
     cells += [dict(case=c, mode=m, friction=0.5, steps=250)
-              for c, m in (("impact", "uniform"), ("impact", "random"), ("jerk", "half-length"))]
+              for c, m in (("impact", "uniform"), ("impact", "random"), ("jerk", "half-length"), ("rest", "clamped"))]
     # The 10 m/s impact at the dt its refusal names (tissue.fem.regime: a node may travel at most
     # the beam's 2 cm thickness in a step): 0.5 s.
     cells += [dict(case="impact", mode="uniform", friction=0.5, steps=250, dt=WIDTH / 10.0)]
@@ -566,7 +567,7 @@ def main(argv=None):
                         "large, polar, invertible) and replace them in bench/results/stability.json, keeping the "
                         "others (and their run's record)")
     parser.add_argument("--cases", type=lambda text: text.split(","), help="run only the cells of these cases "
-                        "(comma-separated: material, twist, inverted, impact, jerk, friction, press) and replace "
+                        "(comma-separated: material, twist, inverted, impact, jerk, rest, friction, press) and replace "
                         "them in bench/results/stability.json, like --only (both: the cells in both)")
     parser.add_argument("--young", type=lambda text: [float(E) for E in text.split(",")],
                         help="the material cells only at these E (Pa, comma-separated); the others kept")
