@@ -95,6 +95,7 @@ CONTACT_DISTANCE = 2e-3                     # m
 # CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations.
 CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid")
 STEP_CONTROL = "energy"
+ENERGY_BUDGET = True        # the step's end held to its start's energy plus the work done on it
 
 
 def material_cells(young=YOUNG, poisson=POISSON, dt=STEPS, rotations=ROTATIONS) -> list[dict]:
@@ -263,7 +264,9 @@ def simulate(cell: dict) -> dict:
         stage = contact_stage(cell, mesh, solver)
     except TissueError as e:
         return {**out, "outcome": "refused", "message": str(e)}
-    stepper = EnergyControl(solver) if cell.get("step_control", STEP_CONTROL) == "energy" else solver
+    stepper = EnergyControl(solver, budget=cell.get("energy_budget", ENERGY_BUDGET)) \
+        if cell.get("step_control", STEP_CONTROL) == "energy" else solver
+    budget = getattr(stepper, "budget", None)
     body = Body(mesh, material, fixed)
     mass = body.lumped_mass
     g = np.asarray(GRAVITY)
@@ -285,7 +288,11 @@ def simulate(cell: dict) -> dict:
             for done in range(1, steps + 1):
                 stepper.step()
                 if stage is not None:
-                    work += obstacle_work(stage.step())
+                    step_work = obstacle_work(stage.step())
+                    work += step_work
+                    if budget:      # the step's end is after the contact correction
+                        budget.add_work(step_work)
+                        budget.close()
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break
@@ -341,7 +348,10 @@ def solve_measures(solver) -> dict:
         return {}
     above = residual > solver.cg.tolerance
     at_cap = iterations >= solver.cg.max_iterations
-    control = {k: int(sum(history[k])) for k in ("energy_rejections", "energy_unresolved") if k in history}
+    control = {k: int(sum(history[k])) for k in ("energy_rejections", "energy_unresolved", "budget_projections",
+                                                  "budget_unresolved") if k in history}
+    if "budget_removed" in history:
+        control["budget_removed"] = float(sum(history["budget_removed"]))
     return dict(control, cg_residual=float(residual[-1]), cg_residual_max=float(residual.max()),
                 cg_residual_median=float(np.median(residual)), cg_steps=len(residual),
                 cg_steps_at_cap=int((above & at_cap).sum()), cg_steps_threshold=int((above & ~at_cap).sum()),
