@@ -12,7 +12,8 @@ moved the state).
 
     python -m bench.step_control [--rounds 5] [--steps 10] [--scenes beam liver liver_press]
     python -m bench.step_control --budget     # the energy budget's cost on top of the check
-                                              # (tissue.solver.energy_budget): step_control_budget.json
+                                              # (tissue.solver.energy_budget): step_control_budget.json,
+                                              # "none" the budget off, "energy" on (both checked)
 """
 
 from __future__ import annotations
@@ -82,7 +83,8 @@ def main(argv=None) -> None:
               f"free motion {none['free_motion_ms']:.2f} → {energy['free_motion_ms']:.2f}), CPU {none['cpu_ms_per_step']:.2f} → "
               f"{energy['cpu_ms_per_step']:.2f} ms ({row['ratio_cpu']:.2f}×); {energy['rejections']} of {row['steps']} "
               f"steps rejected, {energy['budget_projections']} projected by the budget", flush=True)
-    write_results("step_control_budget" if args.budget else "step_control", {"machine": info, "rounds": args.rounds, "steps_per_round": args.steps, "rows": rows})
+    write_results("step_control_budget" if args.budget else "step_control", {"machine": info,
+                                                                            "settings": BUDGET if args.budget else SETTINGS, "rounds": args.rounds, "steps_per_round": args.steps, "rows": rows})
 
 
 if __name__ == "__main__":
