@@ -83,8 +83,9 @@ def main(argv=None) -> None:
               f"free motion {none['free_motion_ms']:.2f} → {energy['free_motion_ms']:.2f}), CPU {none['cpu_ms_per_step']:.2f} → "
               f"{energy['cpu_ms_per_step']:.2f} ms ({row['ratio_cpu']:.2f}×); {energy['rejections']} of {row['steps']} "
               f"steps rejected, {energy['budget_projections']} projected by the budget", flush=True)
-    write_results("step_control_budget" if args.budget else "step_control", {"machine": info,
-                                                                            "settings": BUDGET if args.budget else SETTINGS, "rounds": args.rounds, "steps_per_round": args.steps, "rows": rows})
+    write_results("step_control_budget" if args.budget else "step_control",
+                  {"machine": info, "settings": BUDGET if args.budget else SETTINGS, "rounds": args.rounds,
+                   "steps_per_round": args.steps, "rows": rows})
 
 
 if __name__ == "__main__":
