@@ -247,6 +247,7 @@ def contact_stage(cell: dict, mesh, solver):
 def simulate(cell: dict) -> dict:
     """Run one cell on the current backend; return its outcome."""
     from bench.nonlinear_reference import Body, strain_energy
+    from tissue.contact.layer import obstacle_work
     from tissue.errors import TissueError
     from tissue.fem import Material
     from tissue.mesh.tetmesh import signed_volumes
@@ -288,7 +289,7 @@ def simulate(cell: dict) -> dict:
             for done in range(1, steps + 1):
                 stepper.step()
                 if stage is not None:
-                    step_work = obstacle_work(stage.step())
+                    step_work = obstacle_work(stage.step(), 0)
                     work += step_work
                     if budget:      # the step's end is after the contact correction
                         budget.add_work(step_work)
@@ -327,13 +328,6 @@ def simulate(cell: dict) -> dict:
                    gs_iterations_max=int(max(history["gs_iterations"])), gs_residual_max=float(max(history["gs_residual"])),
                    penetration_max=float(max(history["penetration"])), obstacle_work=float(work / scale))
     return out
-
-
-def obstacle_work(result) -> float:
-    """The work the obstacles did on the body in a contact step (J): each contact's force on the
-    body along the motion of the obstacle's touched point over the step (static obstacles do none;
-    sliding friction's work relative to the obstacle is the body's loss, not the obstacle's)."""
-    return float(np.einsum("kj,kj->", result.contact_forces, result.contacts.other_motion))
 
 
 def solve_measures(solver) -> dict:

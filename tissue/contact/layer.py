@@ -152,9 +152,10 @@ class ContactLayer:
 
 def obstacle_work(result, body: int) -> float:
     """The work (J) the obstacles did on `body` in the step of `result`: each of its contacts'
-    force along the motion of the obstacle's touched point (static obstacles do none). Soft–soft
-    contacts trade energy between bodies, not counted: a body that had any keeps the budget of
-    its free motion (tissue.solver.energy_budget)."""
+    force along the motion of the obstacle's touched point over the step (static obstacles do
+    none; sliding friction's work relative to the obstacle is the body's loss, not the
+    obstacle's). Soft–soft contacts trade energy between bodies, not counted: a body that had any
+    keeps the budget of its free motion (tissue.solver.energy_budget)."""
     forces = result.contact_forces
     mine = result.contacts.body[:len(forces)] == body
     return float(np.einsum("kj,kj->", forces[mine], result.contacts.other_motion[:len(forces)][mine]))
