@@ -18,7 +18,7 @@ projects the state back onto the budget:
 
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
 rest (`budget_unresolved`). The solver's stats count `budget_projections` (steps projected) and
-`budget_removed` (J). Costs: a copy of x and v at each step's start, and, per projected step, a
+`budget_removed` (J). Costs: a copy of x at each step's start, and, per projected step, a
 velocity write (and the bisection's energy launches when the kinetic energy cannot absorb it).
 """
 
@@ -40,12 +40,12 @@ class EnergyBudget:
         self.rounding = ROUNDING[backend.current().precision]
         self.allowed = None       # the energy the current step may end with (J)
         self.in_play = 0.0        # kinetic + elastic at its start (J): the rounding's scale
-        self._start = None        # (x, v) at its start
+        self._start = None        # x at its start
 
     def open(self, start: tuple[float, float]) -> None:
         """A step begins at the solver's state, whose (kinetic + elastic, potential) is `start`."""
         self.allowed, self.in_play = start[0] + start[1], start[0]
-        self._start = (self.solver.positions(), self.solver.velocities())
+        self._start = self.solver.positions()
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""
@@ -75,7 +75,7 @@ class EnergyBudget:
     def _back_along_step(self, x, v):
         """(x, v, excess, unresolved) at the largest s with E(x₀ + s (x − x₀), s v) − K within
         the budget, the excess then left to the kinetic energy."""
-        solver, x0 = self.solver, self._start[0]
+        solver, x0 = self.solver, self._start
 
         def excess_at(s):
             solver.set_state(x0 + s * (x - x0), s * v)
