@@ -342,10 +342,9 @@ class WarpedCompliance:
 
     The nodal rotations average POLAR element rotations whatever the body's elasticity uses: for
     "large" (edge frames) they are computed where the free motion started, x − h v, in one more
-    launch. An edge
-    frame turns away from the polar rotation by about the element's shear, and a compliance warped
-    by it is not R A₀⁻¹ Rᵀ of any rotated body: its correction added energy where the body was
-    sheared (the jerked beam onto the floor, docs/stability.md).
+    launch. An edge frame turns away from the polar rotation by about the element's shear, and a
+    compliance warped by it is not R A₀⁻¹ Rᵀ of any rotated body: its correction added energy
+    where the body was sheared (the cantilever resting or jerked onto the floor, docs/stability.md).
     """
 
     def __init__(self, solver):
@@ -457,8 +456,8 @@ class WarpedCompliance:
         storage, fem = self.storage, self.solver.fem
         lam = storage.get("lam", 1, self.real) if lam is None else storage.put("lam", lam, self.real)
         valence, incidence = fem.model.gather_index()
-        arrays = dict(Re=self._element_rotations, valence=valence, incidence=incidence, R=self.R, C0=self.C0, rows=self.rows, hr=self.hr,
-                      U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
+        arrays = dict(Re=self._element_rotations, valence=valence, incidence=incidence, R=self.R, C0=self.C0,
+                      rows=self.rows, hr=self.hr, U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
                       pushed=self.pushed, x=self.solver.x, v=self.solver.v, sizes=self._scalars[0],
                       reals=self._scalars[1])
         key = tuple(id(a) for a in arrays.values())

@@ -118,9 +118,9 @@ class ContactLayer:
 
     def step(self, sim) -> None:
         result = self.stage.step(time=sim.time + sim.dt)
+        c = result.contacts
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)
-            c = result.contacts
             if budget is not None and len(c) and not (c.soft & ((c.body == i) | (c.other == i))).any():
                 budget.add_work(obstacle_work(result, i))
                 budget.close()

@@ -61,16 +61,19 @@ class EnergyBudget:
             solver.stats.count(budget_projections=0, budget_removed=0.0, budget_unresolved=0)
             return
         x, v = solver.positions(), solver.velocities()
-        kinetic = 0.5 * float(solver.model.mass[:len(v)] @ (v * v).sum(1))
+        kinetic = self._kinetic(v)
         removed, unresolved = excess, 0
         if kinetic < excess:
             x, v, excess, unresolved = self._back_along_step(x, v)
-            kinetic = 0.5 * float(solver.model.mass[:len(v)] @ (v * v).sum(1))
+            kinetic = self._kinetic(v)
         if excess > 0.0 and kinetic > 0.0:
             v = v * np.sqrt(max(0.0, 1.0 - excess / kinetic))
         solver.set_state(x, v)
         self.control.energy()            # the state the next evaluation compares with
         solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved)
+
+    def _kinetic(self, v) -> float:
+        return 0.5 * float(self.solver.model.mass @ (v * v).sum(1))
 
     def _back_along_step(self, x, v):
         """(x, v, excess, unresolved) at the largest s with E(x₀ + s (x − x₀), s v) − K within
@@ -82,6 +85,7 @@ class EnergyBudget:
             inner, potential = self.control.energy()
             return inner + potential - self.allowed
 
+        kinetic = self._kinetic(v)
         low, low_excess = 0.0, excess_at(0.0)
         if low_excess > 0.0:         # the start is over the budget: kept, at rest
             return x0, np.zeros_like(v), 0.0, 1
@@ -89,8 +93,7 @@ class EnergyBudget:
         for _ in range(BISECTIONS):
             middle = 0.5 * (low + high)
             e = excess_at(middle)
-            kinetic = 0.5 * float(solver.model.mass[:len(v)] @ (middle * middle * (v * v).sum(1)))
-            if e <= kinetic:
+            if e <= middle * middle * kinetic:
                 low, low_excess = middle, e
             else:
                 high = middle
