@@ -6,8 +6,9 @@
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
 1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, the solver a user gets from the
 scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations; the energy
-check `tissue.solver.step_control`, `STEP_CONTROL`; a cell's "cg" and "step_control" entries
-override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
+check `tissue.solver.step_control`, `STEP_CONTROL`, with the energy budget
+`tissue.solver.energy_budget`, `ENERGY_BUDGET`, closed again after a contact correction; a cell's
+"cg", "step_control" and "energy_budget" entries override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
 end (E ≤ 1e3 Pa), the special cells and the floor's impacts, jerk and rest with "invertible" (tissue.fem:
 "polar" plus a compression limit). Cells:
   material   E 1e2 … 1e8 Pa × ν 0 … 0.499 × dt 1e-3 … 0.5 s, from rest, for max(20, 1 s / dt)
