@@ -153,3 +153,23 @@ def test_a_rising_floor_does_work_the_budget_lets_in(backend, counted):
         assert sum(solver.stats.history["budget_unresolved"]) == 0
     else:
         assert rise < 0.1 * u * dt * steps
+
+
+def test_the_contact_layer_closes_the_budget_after_its_correction(backend):
+    """A scene with contact (`incline`: the block on the slope from its first step): each step's
+    budget is closed twice, after the free motion and after the contact correction; where nothing
+    is projected the run is the one without the budget, bit for bit."""
+    import scenes
+    from tissue.simulation import Simulation
+
+    runs = {}
+    for budget in (False, True):
+        sim = Simulation(scenes.load("incline")().with_overrides([f"solver.energy_budget={str(budget).lower()}"]))
+        for _ in range(5):
+            sim.step()
+        runs[budget] = (sim.bodies["block"].positions(), sim.bodies["block"].solver.stats.history)
+    history = runs[True][1]
+    assert len(history["budget_projections"]) == 2 * 5
+    assert "budget_projections" not in runs[False][1]
+    assert sum(history["budget_projections"]) == 0
+    assert np.array_equal(runs[True][0], runs[False][0])
