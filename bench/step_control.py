@@ -12,6 +12,9 @@ runs serially, it is computed from the step's own rotations), in the step's laun
 solver runs serially, a launch of its own at each otherwise.
 
     python -m bench.step_control [--rounds 5] [--steps 10] [--scenes beam liver liver_press]
+    python -m bench.step_control --budget     # the energy budget's cost on top of the check
+                                              # (tissue.solver.energy_budget): step_control_budget.json,
+                                              # "none" the budget off, "energy" on (both checked)
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ import numpy as np
 from bench.common import machine, print_machine, write_results
 
 SCENES = ("beam", "liver", "liver_press")
-SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_control=energy"]}
+SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_control=energy", "solver.energy_budget=false"]}
+BUDGET = {"none": ["solver.energy_budget=false"], "energy": ["solver.energy_budget=true"]}   # both checked
 
 
 def build(name: str, overrides: list[str]):
@@ -35,8 +39,8 @@ def build(name: str, overrides: list[str]):
     return Simulation(validate(scenes.load(name)().with_overrides(overrides)), arch="cpu")
 
 
-def measure(name: str, rounds: int, steps: int) -> dict:
-    sims = {k: build(name, overrides) for k, overrides in SETTINGS.items()}
+def measure(name: str, rounds: int, steps: int, settings: dict = SETTINGS) -> dict:
+    sims = {k: build(name, overrides) for k, overrides in settings.items()}
     for sim in sims.values():
         sim.step()                                   # compiles: left out below
     cpu = {k: [] for k in sims}
@@ -52,7 +56,8 @@ def measure(name: str, rounds: int, steps: int) -> dict:
         row[k] = {"ms_per_step": float(np.median(sum(times.values()))),
                   "free_motion_ms": float(np.median(times["free_motion"])),
                   "cpu_ms_per_step": float(np.median(cpu[k])),
-                  "rejections": int(np.sum(sim.stats.history.get("energy_rejections", [])))}
+                  "rejections": int(np.sum(sim.stats.history.get("energy_rejections", []))),
+                  "budget_projections": int(np.sum(sim.stats.history.get("budget_projections", [])))}
     row["ratio_wall"] = row["energy"]["ms_per_step"] / row["none"]["ms_per_step"]
     row["ratio_cpu"] = row["energy"]["cpu_ms_per_step"] / row["none"]["cpu_ms_per_step"]
     return row
@@ -63,6 +68,7 @@ def main(argv=None) -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
+    parser.add_argument("--budget", action="store_true", help="the energy budget off and on, both with the check")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -71,14 +77,16 @@ def main(argv=None) -> None:
     print_machine(info)
     rows = []
     for name in args.scenes:
-        row = measure(name, args.rounds, args.steps)
+        row = measure(name, args.rounds, args.steps, BUDGET if args.budget else SETTINGS)
         rows.append(row)
         none, energy = row["none"], row["energy"]
         print(f"{name:>12}: step {none['ms_per_step']:.2f} → {energy['ms_per_step']:.2f} ms wall ({row['ratio_wall']:.2f}×; "
               f"free motion {none['free_motion_ms']:.2f} → {energy['free_motion_ms']:.2f}), CPU {none['cpu_ms_per_step']:.2f} → "
               f"{energy['cpu_ms_per_step']:.2f} ms ({row['ratio_cpu']:.2f}×); {energy['rejections']} of {row['steps']} "
-              f"steps rejected", flush=True)
-    write_results("step_control", {"machine": info, "rounds": args.rounds, "steps_per_round": args.steps, "rows": rows})
+              f"steps rejected, {energy['budget_projections']} projected by the budget", flush=True)
+    write_results("step_control_budget" if args.budget else "step_control",
+                  {"machine": info, "settings": BUDGET if args.budget else SETTINGS, "rounds": args.rounds,
+                   "steps_per_round": args.steps, "rows": rows})
 
 
 if __name__ == "__main__":

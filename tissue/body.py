@@ -162,7 +162,7 @@ class Body:
         except TissueError as err:
             raise TissueError(f"{name}: {err}") from None
         # What the free motion steps: the solver, or the solver with its energy check.
-        self.stepper = EnergyControl(self.solver) if s.step_control == "energy" else self.solver
+        self.stepper = EnergyControl(self.solver, budget=s.energy_budget) if s.step_control == "energy" else self.solver
         self._visual = None
 
     def visual(self):

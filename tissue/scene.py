@@ -161,6 +161,10 @@ class Solver(Options):
     # applied forces) is redone as two half steps (tissue.solver.step_control): bounded where one
     # linearisation per step overshoots (soft material, large dt, impacts); 'none': every step once
     step_control: Literal["energy", "none"] = "energy"
+    # With step_control 'energy' (its energy is the check's): no step ends above its start's energy
+    # plus the work the moving obstacles did on the body; the excess is projected out
+    # (tissue.solver.energy_budget)
+    energy_budget: bool = True
 
     def check(self):
         require(self.cg_iterations >= 1, "cg_iterations", f"must be >= 1, got {self.cg_iterations}")

@@ -82,8 +82,8 @@ except ImportError:          # the optional extra tissue[cholmod]; scipy's LU st
 
 FACTORIZATIONS = ("auto", "cholmod", "lu")
 SIMPLICIAL_DOFS = 2500      # free dofs up to which CHOLMOD factorises simplicially (see above)
-from ..fem.corotational import nodal_rotation
-from ..fem.model import real_numpy
+from ..fem.corotational import element_rotation, nodal_rotation
+from ..fem.model import MODEL, real_numpy
 from ..launch import host_view, replayed
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
@@ -97,6 +97,20 @@ def _nodal_rotations(Re: ti.types.ndarray(), valence: ti.types.ndarray(), incide
                      out: ti.types.ndarray(), tol: float):
     for v in range(out.shape[0]):
         out[v] = nodal_rotation(Re, valence, incidence, v, tol)
+
+
+@ti.kernel
+def _polar_rotations(m: MODEL, x: ti.types.ndarray(), v: ti.types.ndarray(), h: ti.f64, start: ti.types.ndarray(),
+                     out: ti.types.ndarray(), tol: ti.f64, serial: ti.template()):
+    """The polar rotation of each element at the free motion's start, x − h v (where it linearised,
+    as a "polar" body's own rotations are), for bodies whose own rotations are not polar ("large":
+    see WarpedCompliance)."""
+    ti.loop_config(serialize=serial)
+    for n in range(m.counts[0]):
+        start[n] = x[n] - h * v[n]
+    ti.loop_config(serialize=serial)
+    for e in range(m.counts[1]):
+        out[e] = element_rotation(m, e, start, "polar", tol)
 
 
 # A launch's arrays, in one flat argpack (tissue.solver.implicit_euler says why flat): the FEM's
@@ -325,6 +339,12 @@ class WarpedCompliance:
     Per step: `prepare(jds)` takes the body's rows of H; `add_to(W)` computes, in one launch, the
     nodal rotations, Hr = H R, U = A₀⁻¹ Hrᵀ restricted to the dofs the rows touch, and
     W += h Hr U; `correct(λ)` applies x += R h A₀⁻¹ Hrᵀ λ in one more launch.
+
+    The nodal rotations average POLAR element rotations whatever the body's elasticity uses: for
+    "large" (edge frames) they are computed where the free motion started, x − h v, in one more
+    launch. An edge frame turns away from the polar rotation by about the element's shear, and a
+    compliance warped by it is not R A₀⁻¹ Rᵀ of any rotated body: its correction added energy
+    where the body was sheared (the cantilever resting or jerked onto the floor, docs/stability.md).
     """
 
     def __init__(self, solver):
@@ -333,6 +353,7 @@ class WarpedCompliance:
         self._np = np.float64 if be.real == ti.f64 else np.float32
         self.source = None                  # a CuttingCompliance to read A₀⁻¹ from (follow)
         self._tol = solver.fem.rotation_tolerance
+        self._own_polar = solver.fem.rotation != "large"     # else its polar rotations: element_rotations
         self.storage = Storage()                              # this step's scratch: see prepare
         self._ready = False
         self._pack_key = None
@@ -391,11 +412,23 @@ class WarpedCompliance:
         self.source, self._version, self._gathered = compliance, -1, None
         self.follow_edits()
 
+    def element_rotations(self):
+        """The element rotations the warping averages: the FEM's own of the last free motion, or
+        for "large" the polar ones where it started (one launch)."""
+        solver = self.solver
+        fem = solver.fem
+        if self._own_polar:
+            return fem.R
+        model = fem.model
+        start = self.storage.get("start", model.node_capacity, ti.types.vector(3, self.real))
+        Re = self.storage.get("polar", model.element_capacity, ti.types.matrix(3, 3, self.real))
+        _polar_rotations(model.pack, solver.x, solver.v, solver.dt, start, Re, self._tol, self.serial)
+        return Re
+
     def update_rotations(self) -> None:
-        """Nodal rotations from the element rotations of the last free motion (`add_to` also
+        """Nodal rotations from the element rotations (`element_rotations`; `add_to` also
         computes them, in its own launch)."""
-        fem = self.solver.fem
-        _nodal_rotations(fem.R, *fem.model.gather_index(), self.R, self._tol)
+        _nodal_rotations(self.element_rotations(), *self.solver.fem.model.gather_index(), self.R, self._tol)
 
     def nodal_rotations(self) -> np.ndarray:
         return self.R.to_numpy()[:self.solver.fem.n_nodes].astype(np.float64)
@@ -420,6 +453,7 @@ class WarpedCompliance:
         self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
+        self._element_rotations = self.element_rotations()
 
     def _pack(self, lam=None):
         """The launches' argpack (WARP), rebuilt only when one of its arrays was re-allocated (λ
@@ -427,8 +461,8 @@ class WarpedCompliance:
         storage, fem = self.storage, self.solver.fem
         lam = storage.get("lam", 1, self.real) if lam is None else storage.put("lam", lam, self.real)
         valence, incidence = fem.model.gather_index()
-        arrays = dict(Re=fem.R, valence=valence, incidence=incidence, R=self.R, C0=self.C0, rows=self.rows, hr=self.hr,
-                      U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
+        arrays = dict(Re=self._element_rotations, valence=valence, incidence=incidence, R=self.R, C0=self.C0,
+                      rows=self.rows, hr=self.hr, U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
                       pushed=self.pushed, x=self.solver.x, v=self.solver.v, sizes=self._scalars[0],
                       reals=self._scalars[1])
         key = tuple(id(a) for a in arrays.values())

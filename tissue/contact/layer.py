@@ -117,7 +117,13 @@ class ContactLayer:
                                   instruments=list(self.instruments.values()))
 
     def step(self, sim) -> None:
-        self.stage.step(time=sim.time + sim.dt)
+        result = self.stage.step(time=sim.time + sim.dt)
+        c = result.contacts
+        for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
+            budget = getattr(body.stepper, "budget", None)
+            if budget is not None and len(c) and not (c.soft & ((c.body == i) | (c.other == i))).any():
+                budget.add_work(obstacle_work(result, i))
+                budget.close()
 
     def report(self) -> tuple[dict[str, float], dict[str, float]]:
         """Seconds of the last step by sub-stage, and the counters (contacts, rows, GS iterations
@@ -142,6 +148,17 @@ class ContactLayer:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t
         return T
+
+
+def obstacle_work(result, body: int) -> float:
+    """The work (J) the obstacles did on `body` in the step of `result`: each of its contacts'
+    force along the motion of the obstacle's touched point over the step (static obstacles do
+    none; sliding friction's work relative to the obstacle is the body's loss, not the
+    obstacle's). Soft–soft contacts trade energy between bodies, not counted: a body that had any
+    keeps the budget of its free motion (tissue.solver.energy_budget)."""
+    forces = result.contact_forces
+    mine = result.contacts.body[:len(forces)] == body
+    return float(np.einsum("kj,kj->", forces[mine], result.contacts.other_motion[:len(forces)][mine]))
 
 
 def obstacle_surface(obstacle: RigidObstacle, bounds) -> tuple[np.ndarray, np.ndarray]:

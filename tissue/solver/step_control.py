@@ -12,7 +12,8 @@ elastic (the model's own: tissue.fem.energy) less the work of gravity and the ap
 forces over the step. If it rose by more than `tolerance` of the energy in play, the step is
 undone and taken as two steps of dt/2, each checked the same way, down to dt / 2^max_halvings; a
 step still gaining energy there is kept, and counted (`energy_unresolved` in the solver's stats).
-The stats also count the step's rejections (`energy_rejections`).
+The stats also count the step's rejections (`energy_rejections`). With `budget`, the step's end
+is then held to its start's energy plus the work done on it (tissue.solver.energy_budget).
 
 The energy is evaluated on the device over the solver's arrays (nothing copied to the host): a
 signed principal-stretch eigensolve per element (tissue.fem.energy), summed in a fixed order. Where
@@ -33,6 +34,7 @@ from .. import backend, compilation
 from ..errors import TissueError
 from ..fem.energy import element_energy, element_energy_at_rotations
 from ..launch import replayed
+from .energy_budget import EnergyBudget
 from .implicit_euler import GX, GY, GZ, REPORT_SIZE, STEP, _begin, _end, _multigrid, _report, _solve_serial
 
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
@@ -157,7 +159,8 @@ ENERGY, CHECKED_SERIAL = replayed(_energy), replayed(_checked_serial)
 class EnergyControl:
     """Energy-checked steps of one ImplicitEuler (its `dt`, gravity and applied forces)."""
 
-    def __init__(self, solver, tolerance: float = TOLERANCE, max_halvings: int = MAX_HALVINGS, fused: bool = True):
+    def __init__(self, solver, tolerance: float = TOLERANCE, max_halvings: int = MAX_HALVINGS, fused: bool = True,
+                 budget: bool = False):
         if not tolerance >= 0:
             raise TissueError(f"tolerance: must be ≥ 0, got {tolerance!r}")
         if not (isinstance(max_halvings, int) and max_halvings >= 0):
@@ -171,6 +174,7 @@ class EnergyControl:
         self._shape = None          # the model's capacities the work is sized for
         self._edits = None          # the model's edit count at the last evaluation
         self._slot = 0              # where the last evaluation kept its state
+        self.budget = EnergyBudget(self) if budget else None     # its step's end projected onto it
 
     def _work_pack(self):
         model = self.solver.model
@@ -211,12 +215,18 @@ class EnergyControl:
         solver = self.solver
         dt = solver.dt
         rejections = [0, 0]
+        start = None                # evaluated in the step's launch where it can be (fused)
+        if self.budget:             # the budget needs it, and the start's positions, before the step
+            start = self.energy()
+            self.budget.open(start)
         try:
-            self._advance(None, dt, 0, rejections)
+            end = self._advance(start, dt, 0, rejections)
         finally:
             if solver.dt != dt:
                 solver.set_parameters(dt=dt)
         solver.stats.count(energy_rejections=rejections[0], energy_unresolved=rejections[1])
+        if self.budget:
+            self.budget.close(end)
 
     def _advance(self, start, dt, depth, rejections):
         """Step over dt from the solver's state (whose energy is `start`, or None where not yet
