@@ -627,17 +627,24 @@ def _begin(k: ti.template(), o: ti.template(), tol):
                 if k.held[v] == DETACHED:   # no element: A is zero there, and so is r
                     A = ti.Matrix.identity(float, 3)
                 k.block_inverse[v] = A.inverse()
-            z = _preconditioned(k, o, v, rhs)
             k.dv[v] = _guess(k, v)
-            k.r[v] = rhs
-            k.z[v] = z
-            k.p[v] = z
-            rz += rhs.dot(z)
-            rr += rhs.dot(rhs)
+            products = _set_residual(k, o, v, rhs)
+            rz += products[0]
+            rr += products[1]
         k.partial[0, b] = rz
         k.partial[1, b] = rr
         k.partial[2, b] = rr     # ‖b‖²: the stopping rule's scale
     _warm_start(k, o)
+
+
+@ti.func
+def _set_residual(k: ti.template(), o: ti.template(), v, r):
+    """CG's start at node v from its residual r: r, z = P⁻¹ r and p = z kept; (rᵀz, rᵀr) returned."""
+    z = _preconditioned(k, o, v, r)
+    k.r[v] = r
+    k.z[v] = z
+    k.p[v] = z
+    return ti.Vector([r.dot(z), r.dot(r)])
 
 
 @ti.func
@@ -668,13 +675,9 @@ def _warm_start(k: ti.template(), o: ti.template()):
             rz, rr = 0.0, 0.0
             begin, end = _block_nodes(k, b)
             for v in range(begin, end):
-                r = k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor)
-                z = _preconditioned(k, o, v, r)
-                k.r[v] = r
-                k.z[v] = z
-                k.p[v] = z
-                rz += r.dot(z)
-                rr += r.dot(r)
+                products = _set_residual(k, o, v, k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor))
+                rz += products[0]
+                rr += products[1]
             k.partial[0, b] = rz
             k.partial[1, b] = rr
 
