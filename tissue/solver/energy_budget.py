@@ -42,10 +42,11 @@ class EnergyBudget:
         self.in_play = 0.0        # kinetic + elastic at its start (J): the rounding's scale
         self._start = None        # x at its start
 
-    def open(self, start: tuple[float, float]) -> None:
-        """A step begins at the solver's state, whose (kinetic + elastic, potential) is `start`."""
+    def open(self, start: tuple[float, float], positions=None) -> None:
+        """A step begins at the solver's state, whose (kinetic + elastic, potential) is `start`,
+        at `positions` (default: the solver's now)."""
         self.allowed, self.in_play = start[0] + start[1], start[0]
-        self._start = self.solver.positions()
+        self._start = self.solver.positions() if positions is None else positions
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""

@@ -174,6 +174,7 @@ class EnergyControl:
         self._shape = None          # the model's capacities the work is sized for
         self._edits = None          # the model's edit count at the last evaluation
         self._slot = 0              # where the last evaluation kept its state
+        self._first_start = None    # (kinetic + elastic, potential) at the current step's start
         self.budget = EnergyBudget(self) if budget else None     # its step's end projected onto it
 
     def _work_pack(self):
@@ -215,17 +216,18 @@ class EnergyControl:
         solver = self.solver
         dt = solver.dt
         rejections = [0, 0]
-        start = None                # evaluated in the step's launch where it can be (fused)
-        if self.budget:             # the budget needs it, and the start's positions, before the step
-            start = self.energy()
-            self.budget.open(start)
+        # The budget opens on the step's start: its positions kept now, its energy the first
+        # evaluation's (in the step's own launch where fused).
+        start_positions = solver.positions() if self.budget else None
+        self._first_start = None
         try:
-            end = self._advance(start, dt, 0, rejections)
+            end = self._advance(None, dt, 0, rejections)
         finally:
             if solver.dt != dt:
                 solver.set_parameters(dt=dt)
         solver.stats.count(energy_rejections=rejections[0], energy_unresolved=rejections[1])
         if self.budget:
+            self.budget.open(self._first_start, start_positions)
             self.budget.close(end)
 
     def _advance(self, start, dt, depth, rejections):
@@ -235,6 +237,8 @@ class EnergyControl:
         if solver.dt != dt:
             solver.set_parameters(dt=dt)
         start, end = self._checked_step(start)
+        if self._first_start is None:
+            self._first_start = start
         gain = (end[0] + end[1]) - (start[0] + start[1])
         if gain <= self.tolerance * max(start[0], end[0]):
             return end
