@@ -44,10 +44,10 @@ MAX_HALVINGS = 6        # dt / 64 at the finest
 # their totals (slots below).
 ENERGY_WORK = ti.types.argpack(per_element=ti.types.ndarray(), seen_x=ti.types.ndarray(),
                                seen_v=ti.types.ndarray(), totals=ti.types.ndarray())
-# The elastic energy of the last evaluation, whether it was fresh, kinetic, potential; then the
-# (kinetic + elastic, potential, fresh) of an evaluation at a step's start and at its end.
-ELASTIC, FRESH, KINETIC, POTENTIAL, AT_START, AT_END = 0, 1, 2, 3, 4, 7
-TOTALS = 10
+# The elastic energy of the last evaluation and whether it was fresh; then the (kinetic + elastic,
+# potential, fresh) of an evaluation at a step's start and at its end.
+ELASTIC, FRESH, AT_START, AT_END = 0, 1, 2, 5
+TOTALS = 8
 
 
 @ti.func
@@ -64,15 +64,17 @@ def _keep_state(k: ti.template(), w: ti.template(), previous, edited):
 
 
 @ti.func
-def _load_energies(k: ti.template(), w: ti.template()):
-    """KINETIC, and POTENTIAL: that of gravity and the applied forces (one thread)."""
+def _close_evaluation(k: ti.template(), w: ti.template(), out):
+    """The kinetic energy and the potential of gravity and the applied forces; then the evaluation's
+    (kinetic + elastic, potential, fresh) into totals[out:out + 3] (one thread)."""
     g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
     kinetic, potential = 0.0, 0.0
     for v in range(k.counts[0]):
         kinetic += 0.5 * k.mass[v] * k.v[v].norm_sqr()
         potential -= (k.mass[v] * g + k.external[v]).dot(k.x[v])
-    w.totals[KINETIC] = kinetic
-    w.totals[POTENTIAL] = potential
+    w.totals[out] = kinetic + w.totals[ELASTIC]
+    w.totals[out + 1] = potential
+    w.totals[out + 2] = w.totals[FRESH]
 
 
 @ti.func
@@ -89,10 +91,7 @@ def _evaluate_serial(k: ti.template(), w: ti.template(), rotation: ti.template()
             else:
                 total += element_energy(k, e, k.x, rotation)
         w.totals[ELASTIC] = total
-    _load_energies(k, w)
-    w.totals[out] = w.totals[KINETIC] + w.totals[ELASTIC]
-    w.totals[out + 1] = w.totals[POTENTIAL]
-    w.totals[out + 2] = w.totals[FRESH]
+    _close_evaluation(k, w, out)
 
 
 @ti.kernel
@@ -115,10 +114,7 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
                 for e in range(k.counts[1]):
                     total += w.per_element[e]
                 w.totals[ELASTIC] = total
-            _load_energies(k, w)
-            w.totals[AT_END] = w.totals[KINETIC] + w.totals[ELASTIC]
-            w.totals[AT_END + 1] = w.totals[POTENTIAL]
-            w.totals[AT_END + 2] = w.totals[FRESH]
+            _close_evaluation(k, w, AT_END)
     else:
         ti.loop_config(serialize=True)
         for _ in range(1):
