@@ -942,6 +942,29 @@ def test_stage_factors_equal_the_assembled_warped_W(damped_block):
     np.testing.assert_allclose(r.gaps, r.rows.q + W @ r.impulses, atol=1e-12)
 
 
+def test_kept_rows_of_a_large_body_are_warped_with_this_steps_rotations(cantilever):
+    """The stage hands a WarpedCompliance last step's JDS when the contacts are kept; for a "large"
+    body the polar rotations it warps with are still this step's (x − h v): W after the state
+    turned, with the same JDS object, equals W prepared from a new JDS of the same rows."""
+    from tissue.contact.constraints import JaggedDiagonal, build_rows
+
+    solver, warped, _ = cantilever
+    assert solver.fem.rotation == "large"
+    rest = solver.fem.mesh.points
+    solver.set_state(rest, np.zeros_like(rest))
+    rows = build_rows(_surface_contacts(solver, 20), [rest], [rest])
+    jds = JaggedDiagonal(rows, 0)
+    warped.prepare(jds)
+    turned = rest @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T
+    solver.set_state(turned, np.zeros_like(turned))
+    W = {}
+    for name, prepared in (("kept", jds), ("new", JaggedDiagonal(rows, 0))):
+        warped.prepare(prepared)
+        W[name] = np.zeros((rows.n_rows, rows.n_rows))
+        warped.add_to(W[name])
+    assert np.array_equal(W["kept"], W["new"])
+
+
 def test_rows_of_contacts_at_rest_are_kept_and_rebuilt_when_they_change(damped_block):
     """A block settling on a plane: once its contacts stop changing, the stage keeps last step's
     Jacobian, μ and JDS and builds only δ_free (ContactStage._jacobian). Every step's rows and

@@ -438,6 +438,7 @@ class WarpedCompliance:
         without them), written into the arrays the launches keep; there already when they are
         last step's (the contact stage keeps the rows of contacts at rest)."""
         self._ready = False
+        self._element_rotations = self.element_rotations()     # this step's, kept rows or not
         if jds is self.jds and self.source is None:
             return
         self.jds = jds
@@ -453,7 +454,6 @@ class WarpedCompliance:
         self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
-        self._element_rotations = self.element_rotations()
 
     def _pack(self, lam=None):
         """The launches' argpack (WARP), rebuilt only when one of its arrays was re-allocated (λ
