@@ -11,6 +11,7 @@ compile config: what a later process looks up) and holding its LLVM module, whic
 So run B started with a cache that run A filled compiles exactly B's keys that A's are not:
     misses[B]         B's instances no other run makes (what B compiles after all the others ran)
     pairs[A][B]       B's instances A does not make (B run right after A)
+    counts            how many of each
 A run whose settings differ from its scene's (`liver --set dt=0.03`) should make no instance of
 its own. The meshes are cached once for all runs. Writes bench/results/cache_misses.json (or NAME.json).
 """
@@ -87,7 +88,13 @@ def main(argv=None) -> None:
         print(f"{a:<{width}}" + "".join("   -" if a == b else f"{len(pairs[a][b]):4d}" for b in made) + f"  ({i})")
     write_results(args.out, dict(machine=info, steps=args.steps, load_average=[round(x, 2) for x in os.getloadavg()],
                                  instances={r: sorted(k.values()) for r, k in made.items()},
-                                 misses=misses, pairs=pairs))
+                                 misses=misses, pairs=pairs, counts=counts(misses, pairs)))
+
+
+def counts(misses: dict, pairs: dict) -> dict:
+    """The numbers of instances of `misses` and `pairs` (what the docs' tables print)."""
+    return dict(misses={b: len(names) for b, names in misses.items()},
+                pairs={a: {b: len(names) for b, names in row.items()} for a, row in pairs.items()})
 
 
 if __name__ == "__main__":
