@@ -7,8 +7,10 @@ Each measurement runs `tissue run NAME --no-render --steps N --out TMP` as a sub
 Taichi offline cache (TI_OFFLINE_CACHE_FILE_PATH) and the mesh cache (TISSUE_CACHE) in folders of
 its own:
     cold    both caches empty
-    warm    both caches filled first by runs of other scenes and settings (FILLERS, less the
-            timed command itself): what a user meets on a new scene or a new setting
+    warm    both caches filled first by runs of other scenes and settings: FILLERS and the other
+            scenes of --scenes (each with its defaults), less the timed command itself: what a
+            user meets on a new scene or a new setting. A contact scene among the others fills the
+            contact kernels it shares with the timed one (each filler runs --steps steps too)
     again   the same command once more: everything cached
     taichi  Taichi's cache empty, the mesh cache holding this scene's meshes (procedural meshes are
             made once per machine): the issue's "from an empty Taichi cache"
@@ -69,12 +71,14 @@ def run(command: tuple[str, ...], caches: Path, steps: int, arch: str, checkout:
     return {k: round(v, 3) for k, v in split.items()}
 
 
-def measure(scene: str, steps: int, arch: str, checkout: Path = ROOT) -> list[dict]:
+def measure(scene: str, steps: int, arch: str, checkout: Path = ROOT, others: tuple[str, ...] = ()) -> list[dict]:
+    """The scene's cold, warm, again and taichi runs (see the docstring); `others`: the other
+    scenes whose runs, beside FILLERS, fill the caches for the warm run."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
         rows.append(dict(scene=scene, caches="cold", **run((scene,), Path(tmp), steps, arch, checkout)))
     with tempfile.TemporaryDirectory(prefix="tissue-startup-") as tmp:
-        fillers = [f for f in FILLERS if f != (scene,)]
+        fillers = [f for f in dict.fromkeys((*FILLERS, *((s,) for s in others))) if f != (scene,)]
         for filler in fillers:
             run(filler, Path(tmp), steps, arch, checkout)
         rows.append(dict(scene=scene, caches="warm", filled_by=[" ".join(f) for f in fillers],
@@ -123,7 +127,8 @@ def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, in
     import numpy as np
 
     def measure_all(checkout: Path) -> dict:
-        return {scene: {row["caches"]: row for row in measure(scene, steps, arch, checkout)} for scene in scenes}
+        return {scene: {row["caches"]: row for row in measure(scene, steps, arch, checkout, tuple(scenes))}
+                for scene in scenes}
 
     def describe(rows: dict) -> str:
         return "  ".join(f"{s}: " + "/".join(f"{r['wall_s']:.1f}" for r in runs.values()) for s, runs in rows.items())
@@ -170,7 +175,7 @@ def main(argv=None) -> None:
           f"{edit['remove_ms']:.3f} ms, add {edit['add_ms']:.3f} ms (median), {edit['kernels_compiled']} kernels compiled")
     rows = []
     for scene in args.scenes:
-        for row in measure(scene, args.steps, args.arch):
+        for row in measure(scene, args.steps, args.arch, others=tuple(args.scenes)):
             rows.append(row)
             print(f"{row['scene']:<12} {row['caches']:<6} {row['wall_s']:7.1f} {row['mesh_s']:7.2f} "
                   f"{row['compile_s']:9.1f} {row['machine_code_s']:9.1f} {row['kernels']:7d} {row['simulate_s']:10.2f} {row['other_s']:7.1f}",

@@ -136,3 +136,33 @@ def test_incline_in_float32_matches_float64(capsys, tmp_path, backend):
     error = np.abs(a.points - b.points).max()
     assert 0 < error <= bound, (error, bound, kappa)
     assert bound < 1e-3 * np.abs(u).max()          # the bound is tight enough to mean something
+
+
+def test_scenes_after_another_compile_nothing(tmp_path):
+    """One process runs `liver_press`, then `incline`, `liver` and `beam` (small meshes, 3 steps):
+    once the first has run, the others compile no kernel instance, so neither does a process that
+    starts on a Taichi offline cache the first filled. The second is the case to watch: `incline`
+    has rigid contacts only and `liver_press` soft–soft ones too: detection against obstacles and
+    against other bodies are kernels of their own (one kernel with template switches for the two
+    compiled again for `incline`). A process of its own, so that no earlier test's kernels count."""
+    import subprocess
+    import sys
+
+    runs = ["liver_press", "incline", "liver", "beam"]
+    script = f"""
+import json, sys
+from tissue import compilation
+from tissue.cli import main
+compiled = []
+for name, sets in {[(name, SMALL[name]) for name in runs]!r}:
+    start = len(compilation.instances())
+    argv = ["run", name, "--no-render", "--arch", "cpu", "--steps", "3", "--out", sys.argv[1] + "/" + name]
+    assert main(argv + [a for s in sets for a in ("--set", s)]) == 0, name
+    compiled.append([i.kernel for i in compilation.instances()[start:]])
+print(json.dumps(compiled))
+"""
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    first, *after = json.loads(done.stdout.strip().splitlines()[-1])
+    assert {"_detect_rigid", "_detect_soft", "_sweeps"} <= set(first)
+    assert after == [[]] * len(after), dict(zip(runs[1:], after))

@@ -484,7 +484,9 @@ class WarpedCompliance:
             if self._gathered is None or self._gathered.shape[0] < k or self._gathered.shape[1] != source.capacity:
                 rows = k if self._gathered is None else max(k, 2 * self._gathered.shape[0])
                 self._gathered = ti.ndarray(ti.f64, (rows, source.capacity))
-                self._gathered.fill(0.0)    # (columns past the body's dofs stay zero: the correction reads them)
+                # Zeroed (columns past the body's dofs stay zero: the correction reads them) by a
+                # copy, which is numpy's on the CPU (tissue.launch); fill() compiles a kernel of Taichi's.
+                self._gathered.from_numpy(np.zeros((rows, source.capacity)))
             source.rows_into((3 * touched[:, None] + np.arange(3)).reshape(-1), self._gathered)
             self.C0 = self._gathered
             return np.arange(len(touched), dtype=np.int32)

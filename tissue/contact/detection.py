@@ -23,8 +23,11 @@ g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
               point either way. Both directions are detected (samples of A against triangles of
               B and of B against A).
 
-All of this for one body is ONE kernel launch (`_detect`, writing into a buffer kept between
-calls), which can also copy the body's positions and start-of-step positions for the constraints.
+For one body this is a kernel launch against the obstacles (`_detect_rigid`) and one against each
+other soft body (`_detect_soft`), writing into a buffer kept between calls; the first also copies
+the body's positions and start-of-step positions for the constraints. Two kernels, not one with
+template switches: each compiles once for every scene, so a scene with rigid contacts only and one
+with soft–soft contacts too fill Taichi's offline cache for each other.
 Detection reads the positions after the free motion. Against rigid obstacles a contact point is
 also a contact when it was within the alarm distance at the step's start (given the velocities:
 start = free − h v), by the gap at the free position less the free motion along the normal,
@@ -254,148 +257,159 @@ DETECT_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bou
 DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in DETECT_MEMBERS})
 
 
-@ti.kernel
-def _detect(det: DETECT, poses: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
-            cell0: float, alarm: float, slot: ti.i32, h: float, rigid: ti.template(), soft: ti.template(),
-            copy_state: ti.template(), serial: ti.template()):
-    """The contact candidates of body A's samples, in one launch. out[s, slot] = [gap, normal (3),
-    closest point (3), weights on B's triangle (3), triangle id (-1 rigid)]; gap 1e300: none.
+@ti.func
+def _copy_state(det: ti.template(), state: ti.template(), h, copy_state, serial: ti.template()):
+    """With copy_state (0 or 1): state[k] = (x_k, x_k - h v_k), body A's free and start positions
+    (the constraints need them); a loop of 0 iterations without (a runtime flag: every scene's
+    launches share one instance)."""
+    ti.loop_config(serialize=serial)
+    for k in range(det.xa.shape[0] * copy_state):
+        p, u = det.xa[k], det.va[k]
+        for c in ti.static(range(3)):
+            state[k, c] = p[c]
+            state[k, 3 + c] = p[c] - h * u[c]
 
-    rigid: every (sample, obstacle) pair, the nearest of the obstacle's primitives (slot = the
-    obstacle). soft (against body B, in `slot`): B's triangle grid (box, counting sort), B's
-    vertex normals, then per sample the nearest triangle of its cell within `alarm`.
-    copy_state: also state[k] = (x_k, x_k - h v_k) for A's nodes (the constraints need them)."""
+
+@ti.kernel
+def _detect_rigid(det: DETECT, poses: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
+                  alarm: float, h: float, copy_state: ti.i32, serial: ti.template()):
+    """Body A's contact candidates on the obstacles, in one launch: every (sample, obstacle)
+    pair, the nearest of the obstacle's primitives. out[s, o] = [gap, normal (3), closest point
+    (3), 0 (3), -1]; gap 1e300: none. copy_state: see _copy_state."""
+    _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
-    if ti.static(copy_state):                       # A's (x, x - h v): the free and start positions
-        ti.loop_config(serialize=serial)
-        for k in range(det.xa.shape[0]):
-            p, u = det.xa[k], det.va[k]
-            for c in ti.static(range(3)):
-                state[k, c] = p[c]
-                state[k, 3 + c] = p[c] - h * u[c]
-    if ti.static(rigid):
-        ti.loop_config(serialize=serial)
-        for s, o in ti.ndrange(ns, det.prm_offsets.shape[0] - 1):
-            R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
-                           [poses[o, 6], poses[o, 7], poses[o, 8]]])
-            t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-            p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
-            moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
-            reach = alarm + moved.norm()
-            best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-            # Bounding balls (radius < 0: unbounded, a plane): a primitive whose ball is farther
-            # than `reach` cannot be within it, so it is skipped (the obstacle's ball: all of them).
-            if _near(det.bounds, o, p, reach):
-                for k in range(det.prm_offsets[o], det.prm_offsets[o + 1]):
-                    if _near(det.prm_bounds, k, p, reach):
-                        r = _closest_primitive(det.prm, k, p)
-                        if r[0] < best[0]:
-                            best = r
-            # Within `alarm` at the free position, or at the step's start (the gap less the free
-            # motion along the normal): see the module docstring.
-            start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
-            out[s, o, 0] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
-            if out[s, o, 0] < 1e300:                # the host reads the rest of hits only
-                n = R @ ti.Vector([best[1], best[2], best[3]])
-                c = R @ ti.Vector([best[4], best[5], best[6]]) + t
-                for i in ti.static(range(3)):
-                    out[s, o, 1 + i] = n[i]
-                    out[s, o, 4 + i] = c[i]
-                    out[s, o, 7 + i] = 0.0
-                out[s, o, 10] = -1.0
-    if ti.static(soft):
-        nf = det.faces.shape[0]
-        ti.loop_config(serialize=serial)
-        for _ in range(1):                          # serial: the grid's box, cell size and dims
-            lo = ti.Vector([1e300, 1e300, 1e300])
-            hi = -lo
-            for k in range(det.surface.shape[0]):
-                p = det.xb[det.surface[k]]
-                lo, hi = ti.min(lo, p), ti.max(hi, p)
-            lo -= alarm
-            hi += alarm
-            cell = cell0
-            extent = (hi - lo) / cell
-            while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
-                cell *= 1.26
-                extent = (hi - lo) / cell
-            dims = ti.cast(ti.floor(extent), ti.i32) + 1
+    ti.loop_config(serialize=serial)
+    for s, o in ti.ndrange(ns, det.prm_offsets.shape[0] - 1):
+        R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
+                       [poses[o, 6], poses[o, 7], poses[o, 8]]])
+        t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
+        p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
+        moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+        reach = alarm + moved.norm()
+        best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+        # Bounding balls (radius < 0: unbounded, a plane): a primitive whose ball is farther
+        # than `reach` cannot be within it, so it is skipped (the obstacle's ball: all of them).
+        if _near(det.bounds, o, p, reach):
+            for k in range(det.prm_offsets[o], det.prm_offsets[o + 1]):
+                if _near(det.prm_bounds, k, p, reach):
+                    r = _closest_primitive(det.prm, k, p)
+                    if r[0] < best[0]:
+                        best = r
+        # Within `alarm` at the free position, or at the step's start (the gap less the free
+        # motion along the normal): see the module docstring.
+        start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
+        out[s, o, 0] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
+        if out[s, o, 0] < 1e300:                # the host reads the rest of hits only
+            n = R @ ti.Vector([best[1], best[2], best[3]])
+            c = R @ ti.Vector([best[4], best[5], best[6]]) + t
             for i in ti.static(range(3)):
-                det.grid_f[i] = lo[i]
-                det.grid_i[i] = dims[i]
-            det.grid_f[3] = cell
-            det.grid_i[3] = dims[0] * dims[1] * dims[2]
-        origin = ti.Vector([det.grid_f[0], det.grid_f[1], det.grid_f[2]])
-        cell = det.grid_f[3]
-        dims = ti.Vector([det.grid_i[0], det.grid_i[1], det.grid_i[2]])
-        ti.loop_config(serialize=serial)
-        for c in range(det.grid_i[3] + 1):
-            det.start[c] = 0
-        ti.loop_config(serialize=serial)
-        for f in range(nf):                         # count the triangles of each cell
+                out[s, o, 1 + i] = n[i]
+                out[s, o, 4 + i] = c[i]
+                out[s, o, 7 + i] = 0.0
+            out[s, o, 10] = -1.0
+
+
+@ti.kernel
+def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray(), cell0: float, alarm: float,
+                 slot: ti.i32, h: float, copy_state: ti.i32, serial: ti.template()):
+    """Body A's contact candidates on body B's surface, in one launch: B's triangle grid (box,
+    counting sort), B's vertex normals, then per sample the nearest triangle of its cell within
+    `alarm`. out[s, slot] = [gap, normal (3), closest point (3), weights on B's triangle (3),
+    triangle id]; gap 1e300: none. copy_state: see _copy_state."""
+    _copy_state(det, state, h, copy_state, serial)
+    ns = det.nodes.shape[0]
+    nf = det.faces.shape[0]
+    ti.loop_config(serialize=serial)
+    for _ in range(1):                          # serial: the grid's box, cell size and dims
+        lo = ti.Vector([1e300, 1e300, 1e300])
+        hi = -lo
+        for k in range(det.surface.shape[0]):
+            p = det.xb[det.surface[k]]
+            lo, hi = ti.min(lo, p), ti.max(hi, p)
+        lo -= alarm
+        hi += alarm
+        cell = cell0
+        extent = (hi - lo) / cell
+        while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
+            cell *= 1.26
+            extent = (hi - lo) / cell
+        dims = ti.cast(ti.floor(extent), ti.i32) + 1
+        for i in ti.static(range(3)):
+            det.grid_f[i] = lo[i]
+            det.grid_i[i] = dims[i]
+        det.grid_f[3] = cell
+        det.grid_i[3] = dims[0] * dims[1] * dims[2]
+    origin = ti.Vector([det.grid_f[0], det.grid_f[1], det.grid_f[2]])
+    cell = det.grid_f[3]
+    dims = ti.Vector([det.grid_i[0], det.grid_i[1], det.grid_i[2]])
+    ti.loop_config(serialize=serial)
+    for c in range(det.grid_i[3] + 1):
+        det.start[c] = 0
+    ti.loop_config(serialize=serial)
+    for f in range(nf):                         # count the triangles of each cell
+        a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
+        i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+        for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
+            ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
+    ti.loop_config(serialize=serial)
+    for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
+        for c in range(det.grid_i[3]):
+            det.start[c + 1] += det.start[c]
+            det.cursor[c] = det.start[c]
+        det.grid_i[4] = det.start[det.grid_i[3]]
+        out[ns, slot, 0] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
+    ti.loop_config(serialize=serial)
+    for f in range(nf):                         # fill (order within a cell: any; see below)
+        if det.grid_i[4] <= det.ids.shape[0]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
             i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
             for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-                ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
-        ti.loop_config(serialize=serial)
-        for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
-            for c in range(det.grid_i[3]):
-                det.start[c + 1] += det.start[c]
-                det.cursor[c] = det.start[c]
-            det.grid_i[4] = det.start[det.grid_i[3]]
-            out[ns, slot, 0] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
-        ti.loop_config(serialize=serial)
-        for f in range(nf):                         # fill (order within a cell: any; see below)
-            if det.grid_i[4] <= det.ids.shape[0]:
+                det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
+    ti.loop_config(serialize=serial)
+    for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
+        nv = ti.Vector([0.0, 0.0, 0.0])
+        for m in range(det.vf_offsets[k], det.vf_offsets[k + 1]):
+            f = det.faces[det.vf[m]]
+            nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
+        det.normals[det.surface[k]] = nv / ti.max(nv.norm(), 1e-300)
+    ti.loop_config(serialize=serial)
+    for s in range(ns):                         # narrow phase
+        out[s, slot, 0] = 1e300
+        out[s, slot, 10] = -1.0
+        p = _sample(det.xa, det.nodes, det.weights, s)
+        ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
+        best, best_face = 1e300, -1
+        best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
+        if det.grid_i[4] <= det.ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
+                and 0 <= ijk[2] < dims[2]:
+            cid = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
+            for m in range(det.start[cid], det.start[cid + 1]):
+                f = det.ids[m]
                 a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-                i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
-                for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-                    det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
-        ti.loop_config(serialize=serial)
-        for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
-            nv = ti.Vector([0.0, 0.0, 0.0])
-            for m in range(det.vf_offsets[k], det.vf_offsets[k + 1]):
-                f = det.faces[det.vf[m]]
-                nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
-            det.normals[det.surface[k]] = nv / ti.max(nv.norm(), 1e-300)
-        ti.loop_config(serialize=serial)
-        for s in range(ns):                         # narrow phase
-            out[s, slot, 0] = 1e300
-            out[s, slot, 10] = -1.0
-            p = _sample(det.xa, det.nodes, det.weights, s)
-            ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
-            best, best_face = 1e300, -1
-            best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
-            if det.grid_i[4] <= det.ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
-                    and 0 <= ijk[2] < dims[2]:
-                cid = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
-                for m in range(det.start[cid], det.start[cid + 1]):
-                    f = det.ids[m]
-                    a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-                    w = closest_on_triangle(p, a, b, c)
-                    q = w[0] * a + w[1] * b + w[2] * c
-                    d = (p - q).norm()
-                    # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
-                    # id, so the result does not depend on the order the cell was filled in.
-                    if d < best or (d == best and f < best_face):
-                        best, best_face, best_w, best_c = d, f, w, q
-            if best_face >= 0 and best <= alarm:
-                f = det.faces[best_face]
-                a, b, c = det.xb[f[0]], det.xb[f[1]], det.xb[f[2]]
-                vn = best_w[0] * det.normals[f[0]] + best_w[1] * det.normals[f[1]] + best_w[2] * det.normals[f[2]]
-                d = p - best_c
-                n = (b - a).cross(c - a).normalized()
-                g = 0.0
-                if best > 1e-12 * ((b - a).norm() + (c - a).norm()):
-                    side = 1.0 if d.dot(vn) >= 0.0 else -1.0
-                    n = side * d / best
-                    g = side * best
-                out[s, slot, 0] = g
-                for i in ti.static(range(3)):
-                    out[s, slot, 1 + i] = n[i]
-                    out[s, slot, 4 + i] = best_c[i]
-                    out[s, slot, 7 + i] = best_w[i]
-                out[s, slot, 10] = ti.cast(best_face, float)
+                w = closest_on_triangle(p, a, b, c)
+                q = w[0] * a + w[1] * b + w[2] * c
+                d = (p - q).norm()
+                # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
+                # id, so the result does not depend on the order the cell was filled in.
+                if d < best or (d == best and f < best_face):
+                    best, best_face, best_w, best_c = d, f, w, q
+        if best_face >= 0 and best <= alarm:
+            f = det.faces[best_face]
+            a, b, c = det.xb[f[0]], det.xb[f[1]], det.xb[f[2]]
+            vn = best_w[0] * det.normals[f[0]] + best_w[1] * det.normals[f[1]] + best_w[2] * det.normals[f[2]]
+            d = p - best_c
+            n = (b - a).cross(c - a).normalized()
+            g = 0.0
+            if best > 1e-12 * ((b - a).norm() + (c - a).norm()):
+                side = 1.0 if d.dot(vn) >= 0.0 else -1.0
+                n = side * d / best
+                g = side * best
+            out[s, slot, 0] = g
+            for i in ti.static(range(3)):
+                out[s, slot, 1 + i] = n[i]
+                out[s, slot, 4 + i] = best_c[i]
+                out[s, slot, 7 + i] = best_w[i]
+            out[s, slot, 10] = ti.cast(best_face, float)
 
 
 @ti.kernel
@@ -453,7 +467,7 @@ class _Surface:
 
 # The detection launch repeats its arguments step after step (the bodies' arrays, the buffers kept
 # here): replayed, it skips Taichi's setting of its ~30 arguments.
-_detect_replayed = replayed(_detect)
+_detect_rigid_replayed, _detect_soft_replayed = replayed(_detect_rigid), replayed(_detect_soft)
 
 
 class Detector:
@@ -462,8 +476,8 @@ class Detector:
     surfaces: per soft body, its boundary triangles (k, 3) as node ids, outward; sampling: which
     contact points each body's surface carries (see `surface_samples`).
     The positions passed to `detect` are per body a Taichi ndarray of 3-vectors (the solver's `x`,
-    read in place) or an (n, 3) numpy array. Each body's detection is one kernel launch (two or more only
-    with three or more soft bodies), writing into a buffer kept between calls.
+    read in place) or an (n, 3) numpy array. Each body's detection is a kernel launch against the
+    obstacles and one against each other soft body, writing into a buffer kept between calls.
     """
 
     def __init__(self, surfaces, obstacles=(), soft_soft: bool = True, sampling: str = "vertices"):
@@ -581,8 +595,12 @@ class Detector:
                                   bounds=self._bounds, xb=fields_[b], faces=other.faces, surface=other.surface,
                                   vf_offsets=other.vf_offsets, vf=other.vf, normals=other.normals, start=other.start,
                                   cursor=other.cursor, ids=ids, grid_i=other.grid_i, grid_f=other.grid_f)
-                _detect_replayed(pack, poses, out, state, other.cell + 2 * alarm, alarm, slot, dt, rigid, soft,
-                                 v is not None and k == 0, self.serial)
+                copy_state = int(v is not None and k == 0)
+                if rigid:
+                    _detect_rigid_replayed(pack, poses, out, state, alarm, dt, copy_state, self.serial)
+                if soft:
+                    _detect_soft_replayed(pack, out, state, other.cell + 2 * alarm, alarm, slot, dt,
+                                          0 if rigid else copy_state, self.serial)
                 needed = int(out[-1, slot, 0]) if soft else 0
                 if needed <= ids.shape[0]:
                     break
