@@ -15,8 +15,9 @@ step still gaining energy there is kept, and counted (`energy_unresolved` in the
 The stats also count the step's rejections (`energy_rejections`). With `budget`, the step's end
 is then held to its start's energy plus the work done on it (tissue.solver.energy_budget).
 
-The energy is evaluated on the device over the solver's arrays (nothing copied to the host): from
-each element's polar rotation (tissue.fem.energy), summed in a fixed order. Where
+The energy is evaluated on the device over the solver's arrays (nothing copied to the host): per
+element from its polar rotation, or its stretches where Newton–Schulz does not find the rotation
+(tissue.fem.energy), summed in a fixed order. Where
 the solver runs serially, one launch takes the step and both evaluations (`_checked_serial`): the
 start's from the rotations the step computes (no eigensolve), the end's after it. Otherwise the
 evaluation is a launch of its own (a per-element buffer, then a serial sum) before and after the
