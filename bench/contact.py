@@ -31,6 +31,7 @@ and the contact-force error between the two, in one run on this machine.
     python -m bench.contact            # everything (~40 s on 2 cores)
     python -m bench.contact --quick    # liver_press warped only, and the 450-row comparison
     python -m bench.contact --floor    # the floor scene's step taken apart (stages, launches, copies)
+    python -m bench.contact --press-profile   # the same for liver_press
 """
 
 import argparse
@@ -296,18 +297,18 @@ def run_floor(compliance: str, steps: int) -> dict:
     return _collect(sim, steps - 3, min_rows=30)
 
 
-def floor_profile(steps: int = 100, settle: int = 40, step_control: str | None = None) -> dict:
-    """One contact step of the floor scene (warped) taken apart, once it rests (after `settle`
-    steps): medians of each stage's wall ms (free motion, the contact stage's five stages, and
-    the Python between them, `glue`: the contact stage less its stages), CPU ms of a whole step,
-    kernel launches per step by kernel (free motion and contact stage apart; replayed ones
-    included) and each kernel's median wall ms per launch, numpy arrays handed to kernels and from_numpy/to_numpy copies per step, and the
-    contact stage's most costly Python functions by own time (cProfile, another `steps` steps:
-    the profiler inflates small calls, so read them as a ranking)."""
+def step_profile(sim, steps: int = 100, settle: int = 40) -> dict:
+    """One contact step of `sim` taken apart, after `settle` steps (the floor scene at rest, the
+    press pressed): medians of each stage's wall ms (free motion, the contact stage's five stages,
+    and the Python between them, `glue`: the contact stage less its stages), CPU ms of a whole
+    step, kernel launches per step by kernel (free motion and contact stage apart; replayed ones
+    included) and each kernel's median wall ms per launch, numpy arrays handed to kernels and
+    from_numpy/to_numpy copies per step, and the contact stage's most costly Python functions by
+    own time (cProfile, another `steps` steps: the profiler inflates small calls, so read them as
+    a ranking)."""
     import cProfile
     import pstats
 
-    sim = floor_scene("warped", step_control)
     for _ in range(settle):
         sim.step()
     layer = next(s for s in sim.stages if s.name == "contact")
@@ -367,7 +368,7 @@ def floor_profile(steps: int = 100, settle: int = 40, step_control: str | None =
             "python_functions": functions}
 
 
-def print_floor_profile(p: dict, title: str) -> None:
+def print_step_profile(p: dict, title: str) -> None:
     ms = p["ms_per_step"]
     print(f"\n{title}: rows {p['rows_median']:.0f}, CPU {p['cpu_ms_per_step']:.2f} ms/step; wall ms/step "
           + ", ".join(f"{k} {v:.3f}" for k, v in ms.items()))
@@ -528,6 +529,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=80)
     parser.add_argument("--quick", action="store_true", help="liver_press warped and the 450-row comparison only")
     parser.add_argument("--floor", action="store_true", help="the floor scene's step taken apart only")
+    parser.add_argument("--press-profile", action="store_true", help="liver_press's step taken apart only")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -537,9 +539,15 @@ def main(argv=None) -> int:
     out = {"machine": info, "sofa_floor_ms": SOFA_FLOOR_MS}
     if args.floor:
         for name, control in (("energy control (default)", None), ("no step control", "none")):
-            out[name] = floor_profile(step_control=control)
-            print_floor_profile(out[name], f"liver_floor, warped, {name}")
+            out[name] = step_profile(floor_scene("warped", control))
+            print_step_profile(out[name], f"liver_floor, warped, {name}")
         write_results("contact-floor", out)
+        return 0
+    if args.press_profile:
+        # both passes within the scene's 80 steps (3.2 s), pressed from the start (195-380 rows)
+        out["liver_press"] = step_profile(press("warped"), steps=37, settle=5)
+        print_step_profile(out["liver_press"], "liver_press, warped")
+        write_results("contact-press", out)
         return 0
 
     press_results = {"warped": run_press("warped", args.steps, check_every=0 if args.quick else 8)}

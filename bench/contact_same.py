@@ -1,6 +1,6 @@
 """Whether the contact stage of this checkout computes the same numbers as another commit's, bit for bit.
 
-    python -m bench.contact_same [--other f0c7493] [--cold] [--out contact_same]
+    python -m bench.contact_same [--other f0c7493] [--cold] [--tolerance T] [--out contact_same]
 
 For changes meant to make the contact stage faster without changing its results (its Python and
 numpy glue): both checkouts run the same scenes, by this checkout's bench/contact.py over each
@@ -8,7 +8,9 @@ checkout's own tissue, and every step's positions, velocities, contact forces, r
 sweeps are compared with np.array_equal (a -0.0 equals a 0.0). Scenes: SOFA's floor scene with
 compliance warping (60 steps with the scenes' step control, 30 without), with the exact compliance
 (20 steps), and `liver_press` (45 steps, its W kept as factors, soft–soft and soft–rigid rows).
-Prints the scenes' largest row counts and the differing entries; exits with 1 if any differ.
+Prints the scenes' largest row counts and the differing entries, and where some differ, per scene
+and kind of array the largest difference relative to the kind's largest magnitude; exits with 1 if
+any differ (with `--tolerance T`: if a relative difference exceeds T or an array changed shape).
 `--cold`: this checkout's CG starts from zero (`solver.cg_warm_start=false`), as before the warm
 start (a commit before it has no such field). Writes bench/results/contact_same.json (or OUT.json).
 """
@@ -67,12 +69,23 @@ def run(checkout: Path, folder: Path, overrides: list[str]) -> Path:
 
 
 def compare(this: Path, other: Path) -> dict:
+    """The arrays that differ, and per scene and kind of array (x, v, forces, impulses, sweeps) the
+    largest difference of the same-shaped ones relative to the largest magnitude of that kind."""
     a, b = np.load(this), np.load(other)
     differ = sorted(set(a.files) ^ set(b.files))
     differ += [k for k in sorted(set(a.files) & set(b.files)) if not np.array_equal(a[k], b[k])]
     rows = {tag: max(len(a[k]) for k in a.files if k.startswith(f"{tag}/") and k.endswith("/impulses"))
             for tag, *_ in SCENES}
-    return {"entries": len(a.files), "differ": differ, "rows_max": rows}
+    relative = {}
+    for tag, *_ in SCENES:
+        for kind in ("x", "v", "forces", "impulses", "sweeps"):
+            keys = [k for k in a.files if k.startswith(f"{tag}/") and k.endswith(f"/{kind}") and k in b.files]
+            same = [k for k in keys if a[k].shape == b[k].shape]
+            scale = max((float(np.abs(b[k]).max()) for k in keys if b[k].size), default=0.0)
+            largest = max((float(np.abs(a[k] - b[k]).max()) for k in same if a[k].size), default=0.0)
+            relative[f"{tag}/{kind}"] = {"relative": largest / scale if scale else largest,
+                                         "shapes_differ": len(keys) - len(same)}
+    return {"entries": len(a.files), "differ": differ, "rows_max": rows, "largest_difference": relative}
 
 
 def main(argv=None) -> None:
@@ -80,6 +93,9 @@ def main(argv=None) -> None:
     parser.add_argument("--other", default="f0c7493", help="the commit to compare with")
     parser.add_argument("--cold", action="store_true", help="this checkout's CG started from zero")
     parser.add_argument("--out", default="contact_same", help="the results' name under bench/results")
+    parser.add_argument("--tolerance", type=float, default=None,
+                        help="for a change that alters rounding: pass (exit 0) when every difference relative to "
+                        "its kind's largest magnitude is within it, and no array changed shape")
     args = parser.parse_args(argv)
     cold = ["solver.cg_warm_start=false"] if args.cold else []
     info = machine()
@@ -92,8 +108,16 @@ def main(argv=None) -> None:
         result = compare(runs["this"][0], runs["other"][0])
     print(f"largest row counts {result['rows_max']}; {result['entries']} arrays, "
           f"{len(result['differ'])} differ from {other}'s" + (f": {result['differ'][:10]}" if result["differ"] else ""))
-    write_results(args.out, {"machine": info, "other": other, "cold": args.cold, **result})
-    sys.exit(1 if result["differ"] else 0)
+    if result["differ"]:
+        print("largest difference relative to the largest magnitude (arrays of another shape: rows changed):")
+        for key, d in result["largest_difference"].items():
+            print(f"  {key:<36} {d['relative']:.2e}" + (f"  ({d['shapes_differ']} of another shape)"
+                                                         if d["shapes_differ"] else ""))
+    write_results(args.out, {"machine": info, "other": other, "cold": args.cold, "tolerance": args.tolerance,
+                             **result})
+    within = args.tolerance is not None and all(
+        d["relative"] <= args.tolerance and not d["shapes_differ"] for d in result["largest_difference"].values())
+    sys.exit(0 if not result["differ"] or within else 1)
 
 
 if __name__ == "__main__":

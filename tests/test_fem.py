@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from tissue.errors import TissueError
 from tissue.fem import CorotationalFEM, Material
-from tissue.fem.corotational import symmetric_eigen
+from tissue.fem.corotational import polar_rotation, symmetric_eigen
 from tissue.mesh import TetMesh, box
 from tissue.solver import reference as ref
 
@@ -246,6 +246,36 @@ def test_polar_rotation_of_inverted_elements_is_the_closest_proper_rotation(back
     R = fem.rotations_numpy(x)
     assert np.allclose(np.linalg.det(R), 1.0, atol=1e-12)
     assert np.abs(R - ref.element_rotations(mesh, x, "polar")).max() <= 1e-6
+
+
+@ti.kernel
+def _polar_kernel(a: ti.types.ndarray(), out: ti.types.ndarray()):
+    for i in range(a.shape[0]):
+        out[i] = polar_rotation(a[i], 1e-13)
+
+
+def test_polar_rotation_matches_scipys_polar_near_and_far_from_orthogonal(backend):
+    """F = Q S with S symmetric positive, its distance from I from 1e-8 to 0.5 (Newton–Schulz's
+    region: ‖FᵀF − I‖ ≤ 0.5 for most) and beyond it (the scaled Newton iteration, also after
+    Newton–Schulz gave up), against scipy.linalg.polar's (SVD) factor to 1e-13."""
+    import scipy.linalg
+
+    rng = np.random.default_rng(21)
+    amplitudes = np.repeat([1e-8, 1e-3, 0.05, 0.2, 0.4, 1.0], 40)
+    Q = Rotation.random(len(amplitudes), random_state=22).as_matrix()
+    S = rng.standard_normal((len(amplitudes), 3, 3)) * amplitudes[:, None, None]
+    S = 0.5 * (S + S.transpose(0, 2, 1))
+    values, vectors = np.linalg.eigh(S)
+    S = np.einsum("eij,ej,ekj->eik", vectors, np.exp(values), vectors)      # stretched and compressed
+    F = Q @ S
+    near = np.linalg.norm(np.einsum("eji,ejk->eik", F, F) - np.eye(3), axis=(1, 2)) <= 0.5
+    assert 40 < near.sum() < len(F) - 40          # both iterations are exercised
+    mat3 = ti.types.matrix(3, 3, ti.f64)
+    a, out = ti.ndarray(mat3, len(F)), ti.ndarray(mat3, len(F))
+    a.from_numpy(F)
+    _polar_kernel(a, out)
+    expected = np.stack([scipy.linalg.polar(f)[0] for f in F])
+    assert np.abs(out.to_numpy() - expected).max() <= 1e-13
 
 
 @ti.kernel

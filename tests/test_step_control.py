@@ -98,7 +98,8 @@ def test_a_rejected_step_is_two_half_steps(backend):
 def test_start_energy_reused_only_where_the_last_step_ended(backend):
     """A step starts where the last one ended: the check reuses that end's elastic energy (one
     evaluation a step). A state set in between, or a material changed, is evaluated afresh, to
-    the value a new check finds."""
+    the value a new check finds (to round-off: the step's launch and the evaluation's own are
+    compiled apart, and LLVM contracts the same arithmetic differently in them)."""
     mesh = stability._mesh()
     cell = dict(case="material", young=1e6, poisson=0.3, dt=0.01, rotation="polar")
     x0, v0, fixed = stability.initial_state(cell, mesh)
@@ -118,7 +119,7 @@ def test_start_energy_reused_only_where_the_last_step_ended(backend):
     assert [evaluations(), evaluations(), evaluations()] == [2, 1, 1]
     assert evaluations(lambda: solver.set_state(solver.positions(), 1.01 * solver.velocities())) == 2
     assert evaluations(lambda: solver.fem.model.set_material(Material(2e6, 0.3, 1000.0))) == 2
-    assert control.energy() == EnergyControl(solver).energy()
+    assert control.energy() == pytest.approx(EnergyControl(solver).energy(), rel=1e-14, abs=0.0)
 
 
 @pytest.mark.parametrize("execution", ["serial", "parallel"])

@@ -243,16 +243,21 @@ def polar_rotation(F, tol):
     eigenvector of S with the smallest eigenvalue (Irving et al. 2004), found by Jacobi rotations
     (exact to round-off however close the eigenvalues; inverse iteration converged too slowly for
     an element mirrored whole, whose stretches are all near 1).
+
+    Near orthogonality (a tissue's elements under moderate strain) Newton–Schulz gets there first,
+    by products alone (`newton_schulz`; the scaled iteration's inverse, norms and square roots
+    wait on one another): the same factor to round-off.
     """
-    X = F
+    X, done = newton_schulz(F, tol)
     for _ in range(30):
+        if done:
+            break
         Xinv_t = X.inverse().transpose()
         zeta = ti.sqrt(Xinv_t.norm() / X.norm())
         Y = 0.5 * (zeta * X + Xinv_t / zeta)
         change = (Y - X).norm()
         X = Y
-        if change <= tol:
-            break
+        done = change <= tol
     if F.determinant() < 0:
         S = X.transpose() @ F
         values, V = symmetric_eigen(0.5 * (S + S.transpose()))
@@ -287,18 +292,28 @@ def nodal_rotation(Re: ti.template(), valence: ti.template(), incidence: ti.temp
             X = Re[incidence[v, 0] // 4]
         done = True
     elif S.determinant() > 0.0:
-        for _ in range(12):
-            E = X.transpose() @ X - ti.Matrix.identity(float, 3)
-            e = E.norm()
-            if e > 0.5:                             # too far from orthogonal for Newton–Schulz
-                break
-            X = X - 0.5 * (X @ E)
-            if e <= tol:
-                done = True
-                break
+        X, done = newton_schulz(S, tol)
     if not done:
         X = polar_rotation(S, tol)
     return X
+
+
+@ti.func
+def newton_schulz(F, tol):
+    """(X, converged): F's orthogonal polar factor by Newton–Schulz, X ← X (3I − XᵀX) / 2, which
+    converges quadratically where F is nearly orthogonal (‖FᵀF − I‖ ≤ 0.5: stretches within about
+    30 % of 1) by 3×3 products alone; farther away not converged, X = F."""
+    X, done = F, False
+    for _ in range(12):
+        E = X.transpose() @ X - ti.Matrix.identity(float, 3)
+        e = E.norm()
+        if e > 0.5:                             # too far from orthogonal for Newton–Schulz
+            break
+        X = X - 0.5 * (X @ E)
+        if e <= tol:
+            done = True
+            break
+    return X, done
 
 
 # ---- per-element mathematics, over a model's argpack `m` (tissue.fem.model) and the FEM's work `w`

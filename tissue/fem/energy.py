@@ -1,7 +1,8 @@
 """The elastic energy of a body's co-rotational elements at given positions: numpy on the host
 (the reference), and `element_energy`, the same per element in a Taichi function (the energy
-check's kernel, tissue.solver.step_control, computes it on the device): `polar_energy` from the
-signed principal stretches, or `rotated_energy` from F's polar rotation where a step has it.
+check's kernel, tissue.solver.step_control, computes it on the device): `rotated_energy` from F's
+polar rotation where Newton–Schulz finds it, else `polar_energy` from the signed principal
+stretches.
 
 For "polar" the linear co-rotational energy is a true potential of its forces: with R the polar
 rotation of F and ε = RᵀF − I (symmetric), an element stores V (μ ε:ε + λ/2 (tr ε)²), which is
@@ -15,7 +16,7 @@ import numpy as np
 import taichi as ti
 
 from .corotational import (BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, FLAT_DETERMINANT, compressed,
-                           deformation_gradient, limit_energy, symmetric_eigen)
+                           deformation_gradient, limit_energy, newton_schulz, symmetric_eigen)
 from .model import BodyModel
 
 
@@ -63,8 +64,11 @@ def elastic_energy(model: BodyModel, x: np.ndarray, rotation: str) -> float:
 
 
 @ti.func
-def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template()):
-    """Element e's elastic energy (J) at positions x, as `element_energies`."""
+def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template(), tol):
+    """Element e's elastic energy (J) at positions x, as `element_energies`: from F's polar
+    rotation where Newton–Schulz finds it (to `tol`; F nearly orthogonal and not inverted: a
+    tissue's elements under moderate strain), with fewer dependent operations than the
+    eigensolve of FᵀF and the same energy to round-off; elsewhere from the stretches."""
     F = deformation_gradient(m, e, x)
     energy = 0.0
     if ti.static(rotation == "linear"):
@@ -72,12 +76,17 @@ def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template(
         eps = 0.5 * (F + F.transpose()) - ti.Matrix.identity(float, 3)
         energy = volume * (mu * eps.norm_sqr() + 0.5 * lam * eps.trace() ** 2)
     else:
-        energy = polar_energy(m, e, F, rotation)
+        R, near = newton_schulz(F, tol)
+        if near and F.determinant() > 0.0:
+            energy = rotated_energy(m, e, R, F, rotation)
+        else:
+            energy = polar_energy(m, e, F, rotation)
     return energy
 
 
 @ti.func
-def element_energy_at_rotations(m: ti.template(), w: ti.template(), e, x: ti.template(), rotation: ti.template()):
+def element_energy_at_rotations(m: ti.template(), w: ti.template(), e, x: ti.template(), rotation: ti.template(),
+                                tol):
     """`element_energy`, from the rotations w.R of the FEM's last update where they are F's polar
     rotations ("polar", "invertible", elements not flat: tissue.fem.corotational.element_rotation):
     a step's start, whose rotations the step computes anyway."""
@@ -89,7 +98,7 @@ def element_energy_at_rotations(m: ti.template(), w: ti.template(), e, x: ti.tem
         else:
             energy = polar_energy(m, e, F, rotation)
     else:
-        energy = element_energy(m, e, x, rotation)
+        energy = element_energy(m, e, x, rotation, tol)
     return energy
 
 

@@ -15,8 +15,9 @@ step still gaining energy there is kept, and counted (`energy_unresolved` in the
 The stats also count the step's rejections (`energy_rejections`). With `budget`, the step's end
 is then held to its start's energy plus the work done on it (tissue.solver.energy_budget).
 
-The energy is evaluated on the device over the solver's arrays (nothing copied to the host): a
-signed principal-stretch eigensolve per element (tissue.fem.energy), summed in a fixed order. Where
+The energy is evaluated on the device over the solver's arrays (nothing copied to the host): per
+element from its polar rotation, or its stretches where Newton–Schulz does not find the rotation
+(tissue.fem.energy), summed in a fixed order. Where
 the solver runs serially, one launch takes the step and both evaluations (`_checked_serial`): the
 start's from the rotations the step computes (no eigensolve), the end's after it. Otherwise the
 evaluation is a launch of its own (a per-element buffer, then a serial sum) before and after the
@@ -79,24 +80,25 @@ def _close_evaluation(k: ti.template(), w: ti.template(), out):
 
 @ti.func
 def _evaluate_serial(k: ti.template(), w: ti.template(), rotation: ti.template(), at_rotations: ti.template(),
-                     previous, edited, out):
+                     previous, edited, out, tol):
     """An evaluation in one thread, into totals[out:out + 3]; `at_rotations`: the elements' energies
-    from the FEM's rotations, which must be those of the state (a step's start)."""
+    from the FEM's rotations, which must be those of the state (a step's start); `tol`: the
+    rotations' (tissue.fem.energy.element_energy)."""
     _keep_state(k, w, previous, edited)
     if w.totals[FRESH] != 0:
         total = 0.0
         for e in range(k.counts[1]):
             if ti.static(at_rotations):
-                total += element_energy_at_rotations(k, k, e, k.x, rotation)
+                total += element_energy_at_rotations(k, k, e, k.x, rotation, tol)
             else:
-                total += element_energy(k, e, k.x, rotation)
+                total += element_energy(k, e, k.x, rotation, tol)
         w.totals[ELASTIC] = total
     _close_evaluation(k, w, out)
 
 
 @ti.kernel
 def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.template(), previous: ti.i32,
-            edited: ti.i32) -> ti.types.vector(3, ti.f64):     # not `float`: read at import, before ti.init
+            edited: ti.i32, tol: ti.f64) -> ti.types.vector(3, ti.f64):     # not `float`: read at import, before ti.init
     """(kinetic + elastic, the potential of gravity and the applied forces, 1 if the elastic
     energy was evaluated afresh) at the solver's state; the state is kept in slot 1 − previous
     and compared with slot `previous` (the elastic energy reused where equal and not `edited`)."""
@@ -106,7 +108,7 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
             _keep_state(k, w, previous, edited)
         for e in range(k.counts[1]):
             if w.totals[FRESH] != 0:
-                w.per_element[e] = element_energy(k, e, k.x, rotation)
+                w.per_element[e] = element_energy(k, e, k.x, rotation, tol)
         ti.loop_config(serialize=True)
         for _ in range(1):
             if w.totals[FRESH] != 0:
@@ -118,7 +120,7 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
     else:
         ti.loop_config(serialize=True)
         for _ in range(1):
-            _evaluate_serial(k, w, rotation, False, previous, edited, AT_END)
+            _evaluate_serial(k, w, rotation, False, previous, edited, AT_END, tol)
     return ti.Vector([w.totals[AT_END], w.totals[AT_END + 1], w.totals[AT_END + 2]])
 
 
@@ -136,10 +138,10 @@ def _checked_serial(k: STEP, o: ti.template(), w: ENERGY_WORK, tol: ti.f64, prev
     ti.loop_config(serialize=True)
     for _ in range(1):
         _begin(k, o, tol)
-        _evaluate_serial(k, w, o.rotation, True, previous, edited, AT_START)
+        _evaluate_serial(k, w, o.rotation, True, previous, edited, AT_START, tol)
         _solve_serial(k, o)
         _end(k)
-        _evaluate_serial(k, w, o.rotation, False, 1 - previous, 0, AT_END)
+        _evaluate_serial(k, w, o.rotation, False, 1 - previous, 0, AT_END, tol)
     report = _report(k)
     out = ti.Vector.zero(ti.f64, REPORT_SIZE + 6)
     for i in ti.static(range(REPORT_SIZE)):
@@ -197,7 +199,7 @@ class EnergyControl:
         k = solver._step_pack()
         w = self._work_pack()
         inner, potential, fresh = ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot,
-                                         self._edited())
+                                         self._edited(), solver.fem.rotation_tolerance)
         self._slot = 1 - self._slot
         self.evaluations += int(fresh)
         return float(inner), float(potential)
