@@ -28,7 +28,7 @@ projects the state back onto the budget:
 
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
 rest (`budget_unresolved`). The solver's stats count `budget_projections` (steps projected) and
-`budget_removed` (J). Costs: a copy of x at each step's start, and, per projected step, a
+`budget_removed` (J). Costs: a copy of x and v at each step's start, and, per projected step, a
 velocity write (and the search's energy launches when the kinetic energy cannot absorb it).
 
 Why a body at rest on a static floor is projected: its contact correction ends a step at rest
@@ -61,13 +61,15 @@ class EnergyBudget:
         self.rounding = ROUNDING[backend.current().precision]
         self.allowed = None       # the energy the current step may end with (J)
         self.in_play = 0.0        # kinetic + elastic at its start (J): the rounding's scale
-        self._start = None        # x at its start
+        self._start = None        # (x, v) at its start
+        self._start_energy = 0.0  # E there (J)
 
-    def open(self, start: tuple[float, float], positions=None) -> None:
+    def open(self, start: tuple[float, float], state=None) -> None:
         """A step begins at the solver's state, whose (kinetic + elastic, potential) is `start`,
-        at `positions` (default: the solver's now)."""
+        at `state`, (positions, velocities) (default: the solver's now)."""
         self.allowed, self.in_play = start[0] + start[1], start[0]
-        self._start = self.solver.positions() if positions is None else positions
+        self._start_energy = self.allowed
+        self._start = (self.solver.positions(), self.solver.velocities()) if state is None else state
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""
@@ -90,8 +92,7 @@ class EnergyBudget:
             kinetic = self._kinetic(v)
         if excess > 0.0 and kinetic > 0.0:
             v = v * np.sqrt(max(0.0, 1.0 - excess / kinetic))
-        solver.set_state(x, v)
-        self.control.energy()            # the state the next evaluation compares with
+        solver.set_state(x, v)      # not evaluated: the next evaluation, if any, finds it changed
         solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved)
 
     def _kinetic(self, v) -> float:
@@ -101,7 +102,7 @@ class EnergyBudget:
         """(x, v, excess, unresolved) at an s with U(x₀ + s (x − x₀)) within the budget (U = E − K,
         the energy less the kinetic, which s² K keeps), the excess then left to the kinetic energy;
         `excess`: the end's (s = 1)."""
-        solver, x0 = self.solver, self._start
+        solver, (x0, v0) = self.solver, self._start
         kinetic = self._kinetic(v)
 
         def over(s):    # U − the budget at s (evaluated at rest: U is the energy there)
@@ -110,7 +111,7 @@ class EnergyBudget:
             return inner + potential - self.allowed
 
         solver.set_state(velocities=np.zeros_like(v))
-        low, f_low = 0.0, over(0.0)
+        low, f_low = 0.0, self._start_energy - self._kinetic(v0) - self.allowed    # U at the start: E less K
         if f_low > 0.0:              # the start is over the budget: kept, at rest
             return x0, np.zeros_like(v), 0.0, 1
         high, f_high = 1.0, excess - kinetic
