@@ -181,3 +181,29 @@ def test_the_contact_layer_closes_the_budget_after_its_correction(backend):
     assert "budget_projections" not in runs[False][1]
     assert sum(history["budget_projections"]) == 0
     assert np.array_equal(runs[True][0], runs[False][0])
+
+
+@pytest.mark.parametrize("f, crossing", [
+    (lambda s: s - 0.3, 0.3),                                  # a straight rise through the budget
+    (lambda s: s * (s - 0.2) * (s - 0.7), 0.7),                # rises from the start, dips, crosses at 0.7
+    (lambda s: s, 0.0),                                        # rises from the start all along: the step undone
+    (lambda s: np.expm1(8.0 * (s - 0.9)), 0.9),                # flat, then steep near the end
+])
+def test_the_search_back_along_the_step_stops_at_a_crossing(f, crossing):
+    """The budget's search (regula falsi, energy_budget._crossing) on functions whose crossing is
+    known: a point with −precision ≤ f ≤ 0 just below the crossing, in a few evaluations; where f
+    rises from the start but dips below 0 later, that later crossing (not the start)."""
+    from tissue.solver.energy_budget import SEARCHES, _crossing
+
+    calls = []
+
+    def counted(s):
+        calls.append(s)
+        return f(s)
+
+    precision = 1e-9
+    s, value = _crossing(counted, f(0.0), f(1.0), precision)
+    assert value == f(s) or s == 0.0
+    assert -precision <= value <= 0.0
+    assert crossing - 1e-6 <= s <= crossing + 1e-12
+    assert len(calls) < SEARCHES

@@ -16,15 +16,7 @@ projects the state back onto the budget:
   - else the state goes back along the step toward its start (x₀ + s (x − x₀), s v), to an s in
     [0, 1] where the rest of the energy, U = E − K (elastic + potential: K is s² K there), is within
     the budget, and then the velocities are scaled as above. U along the step is smooth (elastic
-    energy near quadratic, potential linear), so s is found by regula falsi (the Illinois variant),
-    bracketed by the start (within the budget) and the end (over it, known from the end's
-    evaluation), halved first (U may rise from the start and still dip below the budget further
-    along: the abrupt twist of bench/stability.py) and where the bracket does not halve in three
-    evaluations: a few energy evaluations where bisection took 20. It stops at a point within PRECISION of the excess below
-    the budget (the energy removed is at most (1 + PRECISION) times the excess) that the search
-    found, or at the start where U rises from it (the step all gain: U − the budget within
-    PRECISION of the excess a PRECISION of the step from it), or after SEARCHES evaluations. Not at
-    the start merely because it is on the budget (a body starting at rest): it would never move.
+    energy near quadratic, potential linear), so s is found by regula falsi (`_crossing`).
 
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
 rest (`budget_unresolved`). The solver's stats count `budget_projections` (steps projected) and
@@ -100,8 +92,9 @@ class EnergyBudget:
 
     def _back_along_step(self, x, v, excess):
         """(x, v, excess, unresolved) at an s with U(x₀ + s (x − x₀)) within the budget (U = E − K,
-        the energy less the kinetic, which s² K keeps), the excess then left to the kinetic energy;
-        `excess`: the end's (s = 1)."""
+        the energy less the kinetic, which s² K keeps) by at most PRECISION of `excess` (the end's,
+        s = 1), so that at most (1 + PRECISION) times the excess is removed; the excess left there
+        goes to the kinetic energy."""
         solver, (x0, v0) = self.solver, self._start
         kinetic = self._kinetic(v)
 
@@ -111,30 +104,43 @@ class EnergyBudget:
             return inner + potential - self.allowed
 
         solver.set_state(velocities=np.zeros_like(v))
-        low, f_low = 0.0, self._start_energy - self._kinetic(v0) - self.allowed    # U at the start: E less K
+        f_low = self._start_energy - self._kinetic(v0) - self.allowed     # U at the start: E less K
         if f_low > 0.0:              # the start is over the budget: kept, at rest
             return x0, np.zeros_like(v), 0.0, 1
-        high, f_high = 1.0, excess - kinetic
-        weights, side = [f_low, f_high], None     # the secant's: Illinois halves the side kept twice in a row
-        widths = [2.0, 2.0, 2.0]                  # the bracket's widths three, two and one evaluations ago
-        for _ in range(SEARCHES - 1):
-            if -f_low <= PRECISION * excess and (low > 0.0 or f_high <= PRECISION * excess):    # the crossing
-                break
-            width = high - low
-            s = (low * weights[1] - high * weights[0]) / (weights[1] - weights[0])
-            if high == 1.0 and low == 0.0 or width > 0.5 * widths[0]:    # first, and where the secant creeps
-                s = 0.5 * (low + high)
-            s = min(max(s, low + PRECISION * width), high - PRECISION * width)
-            widths = [*widths[1:], width]
-            f = over(s)
-            if f <= 0.0:
-                low, f_low, weights[0] = s, f, f
-                if side == 0:
-                    weights[1] *= 0.5
-                side = 0
-            else:
-                high, f_high, weights[1] = s, f, f
-                if side == 1:
-                    weights[0] *= 0.5
-                side = 1
+        low, f_low = _crossing(over, f_low, excess - kinetic, PRECISION * excess)
         return x0 + low * (x - x0), low * v, max(f_low + low * low * kinetic, 0.0), 0
+
+
+def _crossing(f, f_start: float, f_end: float, precision: float) -> tuple[float, float]:
+    """(s, f(s)) with f(s) ≤ 0 where f crosses 0 on [0, 1], f(0) = f_start ≤ 0 < f(1) = f_end known:
+    regula falsi (the Illinois variant: a side kept twice in a row has its value halved for the
+    secant), its first probe at ½ (f may rise from 0 and still dip below it further along: the
+    abrupt twist of bench/stability.py), bisecting where the bracket did not halve in three
+    evaluations, every probe at least PRECISION of the bracket from its ends. It stops at a point
+    it evaluated with f ≥ −precision, or at 0 where f rises from it (f ≤ precision at the bracket's
+    other end), or after SEARCHES evaluations; not at 0 merely because f(0) ≥ −precision (a body
+    starting at rest on its budget would never move)."""
+    low, high, f_low, f_high = 0.0, 1.0, f_start, f_end
+    weights, side = [f_low, f_high], None
+    widths = [2.0, 2.0, 2.0]        # the bracket's widths three, two and one evaluations ago
+    for evaluation in range(SEARCHES):
+        if -f_low <= precision and (low > 0.0 or f_high <= precision):
+            break
+        width = high - low
+        s = (low * weights[1] - high * weights[0]) / (weights[1] - weights[0])
+        if evaluation == 0 or width > 0.5 * widths[0]:
+            s = 0.5 * (low + high)
+        s = min(max(s, low + PRECISION * width), high - PRECISION * width)
+        widths = [*widths[1:], width]
+        value = f(s)
+        if value <= 0.0:
+            low, f_low, weights[0] = s, value, value
+            if side == 0:
+                weights[1] *= 0.5
+            side = 0
+        else:
+            high, f_high, weights[1] = s, value, value
+            if side == 1:
+                weights[0] *= 0.5
+            side = 1
+    return low, f_low
