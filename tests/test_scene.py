@@ -182,6 +182,18 @@ def test_rotation_matrix_is_x_then_y_then_z():
 # ---- simulation ----------------------------------------------------------------------------------
 
 
+def test_run_freezes_the_objects_built_before_it(backend):
+    """Simulation.run freezes what is alive when it starts (gc.freeze): the collector's full
+    passes no longer walk the simulation's objects (a floor step paused for tens of ms about once
+    in 1,000 steps)."""
+    import gc
+
+    sim = Simulation(SmallBeam())
+    gc.unfreeze()
+    sim.run(1)
+    assert gc.get_freeze_count() > 0
+
+
 def test_simulation_builds_only_free_motion_and_steps(backend):
     sim = Simulation(SmallBeam().with_overrides(["beam.position=0,0,1", "beam.orientation=0,0,90"]))
     assert [s.name for s in sim.stages] == ["free_motion"]

@@ -296,6 +296,7 @@ class ImplicitEuler:
             self._nodes = model.n_nodes
         self.arrays = arrays
         self.x, self.v = arrays["x"], arrays["v"]
+        self._views = {}
         self._upload_parameters()
         self.allocations += 1
         self._version = model.version
@@ -361,18 +362,30 @@ class ImplicitEuler:
         self._resize()
         n = self.model.n_nodes
         if backend.current().arch == "cpu":
-            backend.sync()
-            return host_view(array)[:n].astype(np.float64)
+            return self._view(array)[:n].astype(np.float64)
         return array.to_numpy()[:n].astype(np.float64)
 
+    def _view(self, array) -> np.ndarray:
+        """numpy over a state array's memory (CPU), kept until the state is re-allocated: making
+        one costs more than copying a few thousand nodes' rows."""
+        kept = self._views.get(id(array))
+        if kept is None:
+            kept = self._views[id(array)] = (array, host_view(array))
+        return kept[1]
+
     def set_state(self, positions=None, velocities=None) -> None:
+        """Positions and velocities (n, 3) of all nodes (None: kept); on the CPU written in the
+        arrays' own memory, no launch."""
         self._resize()
         n = self.model.n_nodes
+        on_cpu = backend.current().arch == "cpu"
         for array, values in ((self.x, positions), (self.v, velocities)):
             if values is not None:
-                padded = np.zeros((array.shape[0], 3), dtype=real_numpy())
+                padded = self._view(array) if on_cpu else np.empty((array.shape[0], 3), dtype=real_numpy())
                 padded[:n] = np.asarray(values, dtype=np.float64).reshape(n, 3)
-                array.from_numpy(padded)
+                padded[n:] = 0.0
+                if not on_cpu:
+                    array.from_numpy(padded)
 
     def set_nodes(self, ids, positions, velocities) -> None:
         """Positions and velocities (k, 3) of these nodes only (new nodes of a cut: an edit

@@ -214,9 +214,9 @@ class EnergyControl:
         solver = self.solver
         dt = solver.dt
         rejections = [0, 0]
-        # The budget opens on the step's start: its positions kept now, its energy the first
+        # The budget opens on the step's start: its state kept now, its energy the first
         # evaluation's (in the step's own launch where fused).
-        start_positions = solver.positions() if self.budget else None
+        start_state = (solver.positions(), solver.velocities()) if self.budget else None
         self._first_start = None
         try:
             end = self._advance(None, dt, 0, rejections)
@@ -225,7 +225,7 @@ class EnergyControl:
                 solver.set_parameters(dt=dt)
         solver.stats.count(energy_rejections=rejections[0], energy_unresolved=rejections[1])
         if self.budget:
-            self.budget.open(self._first_start, start_positions)
+            self.budget.open(self._first_start, start_state)
             self.budget.close(end)
 
     def _advance(self, start, dt, depth, rejections):
