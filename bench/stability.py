@@ -284,6 +284,7 @@ def simulate(cell: dict) -> dict:
     emax = emin = e0
     out.update(steps=steps, inverted_at_start=int((signed_volumes(x, mesh.tets) <= 0).sum()))
     message, done, e, work, x_start = None, 0, e0, 0.0, x
+    inverted_steps, inverted_max = 0, 0      # steps that ended with elements inverted, and the most
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -298,6 +299,8 @@ def simulate(cell: dict) -> dict:
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break
+                flipped = int((signed_volumes(x, mesh.tets) <= 0).sum())
+                inverted_steps, inverted_max = inverted_steps + (flipped > 0), max(inverted_max, flipped)
                 e = energy(x, v) - work
                 emax, emin = max(emax, e), min(emin, e)
                 if e - e0 > 1e6 * scale:    # far past bounded: stop early
@@ -313,7 +316,8 @@ def simulate(cell: dict) -> dict:
     outcome = classify(message, finite, overshoot, inverted)
     out.update(outcome=outcome, message=message, steps_done=done, energy_overshoot=float(overshoot),
                energy_net=float(net), kinetic_at_end=float(0.5 * mass @ (v * v).sum(1) / scale) if finite else math.nan,
-               inverted_at_end=inverted, inversion_warned=warned, cg_breakdowns=breakdowns,
+               inverted_at_end=inverted, inverted_steps=inverted_steps, inverted_max=inverted_max,
+               inversion_warned=warned, cg_breakdowns=breakdowns,
                **solve_measures(solver), seconds=time.perf_counter() - start)
     if cell["case"] == "material":
         out["self_weight_strain"] = material.density * 9.81 * LENGTH / material.young   # ρ g L / E
