@@ -248,7 +248,7 @@ def contact_stage(cell: dict, mesh, solver):
 def simulate(cell: dict) -> dict:
     """Run one cell on the current backend; return its outcome."""
     from bench.nonlinear_reference import Body, strain_energy
-    from tissue.contact.layer import close_budgets, obstacle_work
+    from tissue.contact.layer import obstacle_work
     from tissue.errors import TissueError
     from tissue.fem import Material
     from tissue.mesh.tetmesh import signed_volumes
@@ -291,10 +291,11 @@ def simulate(cell: dict) -> dict:
             for done in range(1, steps + 1):
                 stepper.step()
                 if stage is not None:
-                    result = stage.step()
-                    work += obstacle_work(result, 0)
+                    step_work = obstacle_work(stage.step(), 0)
+                    work += step_work
                     if budget:      # the step's end is after the contact correction
-                        close_budgets(result, [budget])
+                        budget.add_work(step_work)
+                        budget.close()
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break

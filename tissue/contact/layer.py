@@ -118,7 +118,12 @@ class ContactLayer:
 
     def step(self, sim) -> None:
         result = self.stage.step(time=sim.time + sim.dt)
-        close_budgets(result, [getattr(body.stepper, "budget", None) for body in sim.bodies.values()])
+        c = result.contacts
+        for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
+            budget = getattr(body.stepper, "budget", None)
+            if budget is not None and len(c) and not (c.soft & ((c.body == i) | (c.other == i))).any():
+                budget.add_work(obstacle_work(result, i))
+                budget.close()
 
     def report(self) -> tuple[dict[str, float], dict[str, float]]:
         """Seconds of the last step by sub-stage, and the counters (contacts, rows, GS iterations
@@ -145,58 +150,15 @@ class ContactLayer:
         return T
 
 
-def close_budgets(result, budgets) -> None:
-    """Close again, after the correction of `result`, the energy budget of every body it touched
-    (`budgets`: per body, None for one without), the step then ending there: each takes the work
-    the moving obstacles did on it (`obstacle_work`) and what the soft bodies it touched gave it
-    (`exchanged_work`), so that bodies in contact are held to their total. A body touching one
-    without a budget keeps its free motion's (that one's motion over the step is not known)."""
-    c = result.contacts
-    if not len(c):
-        return
-    moved = [None if b is None else b.solver.positions() - b.start_positions for b in budgets]
-    for i in np.union1d(c.body, c.other[c.soft]):
-        partners = np.union1d(c.other[c.soft & (c.body == i)], c.body[c.soft & (c.other == i)])
-        if budgets[i] is not None and all(moved[j] is not None for j in partners):
-            budgets[i].add_work(obstacle_work(result, i) + exchanged_work(result, i, moved))
-            budgets[i].close()
-
-
 def obstacle_work(result, body: int) -> float:
     """The work (J) the obstacles did on `body` in the step of `result`: each of its contacts'
     force along the motion of the obstacle's touched point over the step (static obstacles do
     none; sliding friction's work relative to the obstacle is the body's loss, not the
-    obstacle's)."""
+    obstacle's). Soft–soft contacts trade energy between bodies, not counted: a body that had any
+    keeps the budget of its free motion (tissue.solver.energy_budget)."""
     forces = result.contact_forces
-    mine = (result.contacts.body[:len(forces)] == body) & ~result.contacts.soft[:len(forces)]
+    mine = result.contacts.body[:len(forces)] == body
     return float(np.einsum("kj,kj->", forces[mine], result.contacts.other_motion[:len(forces)][mine]))
-
-
-def exchanged_work(result, body: int, moved) -> float:
-    """The energy (J) `body` received in the step of `result` from the soft bodies it touched
-    (`moved`: per body, its nodes' displacements over the step): at each soft–soft contact, the
-    force on it along the mean of the two touching material points' displacements. What one body
-    receives the other gives, so the pair's total is its own; the work along their relative
-    motion (the contact's loss, or a gain its correction made: pushing penetrating bodies apart)
-    is granted to neither."""
-    c, forces = result.contacts, result.contact_forces
-    k = len(forces)
-    soft = np.flatnonzero(c.soft[:k] & ((c.body[:k] == body) | (c.other[:k] == body)))
-    if not len(soft):
-        return 0.0
-    own = _point_motion(moved, c.body[soft], c.nodes[soft], c.own_weights[soft])
-    other = _point_motion(moved, c.other[soft], c.triangle[soft], c.weights[soft])
-    sign = np.where(c.body[soft] == body, 1.0, -1.0)       # the other body feels the force reversed
-    return float(np.einsum("k,kj,kj->", sign, forces[soft], 0.5 * (own + other)))
-
-
-def _point_motion(moved, bodies, nodes, weights) -> np.ndarray:
-    """(k, 3) displacements of material points, each Σⱼ weights[k, j] moved[bodies[k]][nodes[k, j]]."""
-    out = np.zeros((len(bodies), 3))
-    for b in np.unique(bodies):
-        mine = bodies == b
-        out[mine] = np.einsum("kj,kjc->kc", weights[mine], moved[b][nodes[mine]])
-    return out
 
 
 def obstacle_surface(obstacle: RigidObstacle, bounds) -> tuple[np.ndarray, np.ndarray]:

@@ -8,8 +8,7 @@ than its tolerance, and the gains under it add up (the abrupt twist of the stabi
 
 The energy E is the energy check's: kinetic + elastic + the potential of gravity and the applied
 forces (their work is its fall). A step's budget is E at its start plus the work the contact
-stage's moving obstacles did on the body and what the soft bodies it touched gave it
-(`add_work`; static obstacles and held nodes do none; tissue.contact.layer.close_budgets).
+stage's moving obstacles did on the body (`add_work`; static obstacles and held nodes do none).
 `close()` compares E at the step's end with it and, where it is over by more than rounding,
 projects the state back onto the budget:
 
@@ -48,11 +47,6 @@ class EnergyBudget:
         at `positions` (default: the solver's now)."""
         self.allowed, self.in_play = start[0] + start[1], start[0]
         self._start = self.solver.positions() if positions is None else positions
-
-    @property
-    def start_positions(self) -> np.ndarray:
-        """x at the current step's start."""
-        return self._start
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""
