@@ -5,7 +5,7 @@
 
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
 1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, the solver a user gets from the
-scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations; the energy
+scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations, warm-started; the energy
 check `tissue.solver.step_control`, `STEP_CONTROL`, with the energy budget
 `tissue.solver.energy_budget`, `ENERGY_BUDGET`, closed again after a contact correction; a cell's
 "cg", "step_control" and "energy_budget" entries override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
@@ -93,8 +93,9 @@ SLIDE = 0.3                                 # m/s: the block's launch speed alon
 PRESS = (5e-3, 2.0)                         # the plate's travel (m) and the time it takes (s)
 CONTACT_DISTANCE = 2e-3                     # m
 # The implicit solve a user gets: the scenes' defaults (scenes/beam.py, liver.py, ...), each step's
-# CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations.
-CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid")
+# CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations, started from the
+# last step's solution (tissue.scene.Solver.cg_warm_start).
+CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid", warm_start=True)
 STEP_CONTROL = "energy"
 ENERGY_BUDGET = True        # the step's end held to its start's energy plus the work done on it
 
@@ -228,6 +229,7 @@ def solver_for(cell: dict, mesh, material):
     fem = solver.fem
     fem.model.set_material(material)     # a runtime change: nothing recompiles
     solver.check_regime()                # the refusal a new solver gives at its first step, now
+    solver.arrays["dv"].fill(0.0)        # the warm start's last solution: the last cell's, not this one's
     solver.stats = Stats()
     solver._warned_inversion = False     # the solver warns once per life: here, once per cell
     return solver

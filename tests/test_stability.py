@@ -213,6 +213,20 @@ def test_hanging_soft_cantilever_keeps_every_element_uninverted(backend, poisson
     assert r["outcome"] == "bounded" and r["inverted_steps"] == 0, r
 
 
+def test_a_cell_does_not_start_from_the_last_cells_solution(backend):
+    """The cells warm-start CG as the scenes do, on solvers kept across cells: a cell run after
+    another gives what it gives run first, on a new solver, bit for bit (its first step starts
+    from zero, not from the other cell's last solution)."""
+    first = dict(case="material", young=1e5, poisson=0.3, dt=0.01, rotation="polar")
+    stability._solvers.clear()
+    alone = stability.simulate(first)
+    stability.simulate(dict(case="material", young=1e4, poisson=0.45, dt=0.04, rotation="polar"))
+    after = stability.simulate(first)
+    assert stability.CG["warm_start"]
+    for key in ("tip_displacement", "energy_net", "cg_residual", "cg_iterations_median", "cg_iterations_max"):
+        assert after[key] == alone[key], key
+
+
 def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
     r = outcome(dict(case="jerk", mode="half-length", dt=0.04, steps=100, rotation="polar"))
     assert r["outcome"] == "bounded", r
