@@ -439,10 +439,10 @@ def counts(results: list[dict]) -> dict:
 TAG = "<!-- figures: bench/results/stability.json -->"   # tests/test_readme_figures.py checks these
 
 
-# Why the cells that still fail fail (docs/stability.md), by rotation and outcome ("large" gained
-# energy in two cells before the energy budget and the contact stage's polar warping).
-WHY = {("invertible", "inverted"): "the hanging beam still swings at the end, and its clamp's corner elements "
-                                   "flip with each swing (docs/stability.md)"}
+# Why the cells that fail fail (docs/stability.md), by rotation and outcome: none fails at
+# b0beb68; "invertible" can still carry an element from uncompressed to inverted in one step.
+WHY = {("invertible", "inverted"): "a step carried an element past the compression barrier, whose tangent is "
+                                   "taken at the step's start (docs/stability.md)"}
 
 
 def counts_markdown(results: list[dict]) -> list[str]:
