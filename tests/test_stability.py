@@ -227,6 +227,25 @@ def test_a_cell_does_not_start_from_the_last_cells_solution(backend):
         assert after[key] == alone[key], key
 
 
+@pytest.mark.parametrize("rotation, advice", [("polar", "rotation 'invertible' adds one"),
+                                               pytest.param("invertible", "'invertible' barrier did not hold",
+                                                            marks=pytest.mark.slow)])
+def test_the_inversion_warning_fits_the_rotation(backend, rotation, advice):
+    """The solver's warning about inverted elements (the inverted node: 6 at the start) says what
+    to try for a rotation without a barrier, and what failed for the one with it."""
+    from tissue.fem import Material
+
+    cell = dict(case="inverted", mode="node", dt=0.04, rotation=rotation)
+    mesh = stability._mesh()
+    x, v, fixed = stability.initial_state(cell, mesh)
+    solver = stability.solver_for(cell, mesh, Material(1e4, 0.45, 1000.0))
+    solver.set_fixed(fixed)
+    solver.set_state(x, v)
+    with pytest.warns(UserWarning, match="6 elements are inverted") as caught:
+        solver.step()
+    assert any(advice in str(w.message) for w in caught), [str(w.message) for w in caught]
+
+
 def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
     r = outcome(dict(case="jerk", mode="half-length", dt=0.04, steps=100, rotation="polar"))
     assert r["outcome"] == "bounded", r
