@@ -5,7 +5,7 @@
 
 The scene: a small cantilever (0.1 × 0.02 × 0.02 m, 10 × 2 × 2 cubes, 240 tetrahedra, density
 1000), clamped at x = 0, under gravity, Rayleigh 0.1 / 0.1, the solver a user gets from the
-scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations; the energy
+scenes (`CG`: multigrid-preconditioned CG to ‖r‖ ≤ 1e-3 ‖b‖, at most 100 iterations, warm-started; the energy
 check `tissue.solver.step_control`, `STEP_CONTROL`, with the energy budget
 `tissue.solver.energy_budget`, `ENERGY_BUDGET`, closed again after a contact correction; a cell's
 "cg", "step_control" and "energy_budget" entries override them), each cell with both rotation methods ("large": edge frames, SOFA's default; "polar"), and the soft
@@ -93,8 +93,9 @@ SLIDE = 0.3                                 # m/s: the block's launch speed alon
 PRESS = (5e-3, 2.0)                         # the plate's travel (m) and the time it takes (s)
 CONTACT_DISTANCE = 2e-3                     # m
 # The implicit solve a user gets: the scenes' defaults (scenes/beam.py, liver.py, ...), each step's
-# CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations.
-CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid")
+# CG to ‖r‖ ≤ 1e-3 ‖b‖ with the multigrid preconditioner, at most 100 iterations, started from the
+# last step's solution (tissue.scene.Solver.cg_warm_start).
+CG = dict(max_iterations=100, tolerance=1e-3, preconditioner="multigrid", warm_start=True)
 STEP_CONTROL = "energy"
 ENERGY_BUDGET = True        # the step's end held to its start's energy plus the work done on it
 
@@ -228,6 +229,7 @@ def solver_for(cell: dict, mesh, material):
     fem = solver.fem
     fem.model.set_material(material)     # a runtime change: nothing recompiles
     solver.check_regime()                # the refusal a new solver gives at its first step, now
+    solver.arrays["dv"].fill(0.0)        # the warm start's last solution: the last cell's, not this one's
     solver.stats = Stats()
     solver._warned_inversion = False     # the solver warns once per life: here, once per cell
     return solver
@@ -284,6 +286,7 @@ def simulate(cell: dict) -> dict:
     emax = emin = e0
     out.update(steps=steps, inverted_at_start=int((signed_volumes(x, mesh.tets) <= 0).sum()))
     message, done, e, work, x_start = None, 0, e0, 0.0, x
+    inverted_steps, inverted_max = 0, 0      # steps that ended with elements inverted, and the most
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -298,6 +301,8 @@ def simulate(cell: dict) -> dict:
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break
+                flipped = int((signed_volumes(x, mesh.tets) <= 0).sum())
+                inverted_steps, inverted_max = inverted_steps + (flipped > 0), max(inverted_max, flipped)
                 e = energy(x, v) - work
                 emax, emin = max(emax, e), min(emin, e)
                 if e - e0 > 1e6 * scale:    # far past bounded: stop early
@@ -313,7 +318,8 @@ def simulate(cell: dict) -> dict:
     outcome = classify(message, finite, overshoot, inverted)
     out.update(outcome=outcome, message=message, steps_done=done, energy_overshoot=float(overshoot),
                energy_net=float(net), kinetic_at_end=float(0.5 * mass @ (v * v).sum(1) / scale) if finite else math.nan,
-               inverted_at_end=inverted, inversion_warned=warned, cg_breakdowns=breakdowns,
+               inverted_at_end=inverted, inverted_steps=inverted_steps, inverted_max=inverted_max,
+               inversion_warned=warned, cg_breakdowns=breakdowns,
                **solve_measures(solver), seconds=time.perf_counter() - start)
     if cell["case"] == "material":
         out["self_weight_strain"] = material.density * 9.81 * LENGTH / material.young   # ρ g L / E
@@ -433,10 +439,10 @@ def counts(results: list[dict]) -> dict:
 TAG = "<!-- figures: bench/results/stability.json -->"   # tests/test_readme_figures.py checks these
 
 
-# Why the cells that still fail fail (docs/stability.md), by rotation and outcome ("large" gained
-# energy in two cells before the energy budget and the contact stage's polar warping).
-WHY = {("invertible", "inverted"): "the hanging beam still swings at the end, and its clamp's corner elements "
-                                   "flip with each swing (docs/stability.md)"}
+# Why the cells that fail fail (docs/stability.md), by rotation and outcome: none fails at
+# b0beb68; "invertible" can still carry an element from uncompressed to inverted in one step.
+WHY = {("invertible", "inverted"): "a step carried an element past the compression barrier, whose tangent is "
+                                   "taken at the step's start (docs/stability.md)"}
 
 
 def counts_markdown(results: list[dict]) -> list[str]:

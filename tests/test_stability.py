@@ -202,6 +202,50 @@ def test_soft_end_recovers_from_inversion_with_the_compression_limit(backend, yo
     assert r["outcome"] == "bounded" and r["inverted_at_end"] == 0, r
 
 
+@pytest.mark.slow   # compiles the "invertible" step
+@pytest.mark.parametrize("poisson", [0.0, 0.3])
+def test_hanging_soft_cantilever_keeps_every_element_uninverted(backend, poisson):
+    """ρgL/E = 9.8, dt 10 ms (a step short enough that its linearisation holds): no step ends with
+    an element inverted (signed volumes in numpy). With the barrier's restoring stress capped at
+    BARRIER_END 0.3 (−5.1 κ c) the clamp's elements, one free node each, rested at the cap and
+    flipped with the swing: 29 and 27 of the 100 steps ended with elements inverted."""
+    r = outcome(dict(case="material", young=1e2, poisson=poisson, dt=0.01, rotation="invertible"))
+    assert r["outcome"] == "bounded" and r["inverted_steps"] == 0, r
+
+
+def test_a_cell_does_not_start_from_the_last_cells_solution(backend):
+    """The cells warm-start CG as the scenes do, on solvers kept across cells: a cell run after
+    another gives what it gives run first, on a new solver, bit for bit (its first step starts
+    from zero, not from the other cell's last solution)."""
+    first = dict(case="material", young=1e5, poisson=0.3, dt=0.01, rotation="polar")
+    stability._solvers.clear()
+    alone = stability.simulate(first)
+    stability.simulate(dict(case="material", young=1e4, poisson=0.45, dt=0.04, rotation="polar"))
+    after = stability.simulate(first)
+    assert stability.CG["warm_start"]
+    for key in ("tip_displacement", "energy_net", "cg_residual", "cg_iterations_median", "cg_iterations_max"):
+        assert after[key] == alone[key], key
+
+
+@pytest.mark.parametrize("rotation, advice", [("polar", "rotation 'invertible' adds one"),
+                                               pytest.param("invertible", "'invertible' barrier did not hold",
+                                                            marks=pytest.mark.slow)])
+def test_the_inversion_warning_fits_the_rotation(backend, rotation, advice):
+    """The solver's warning about inverted elements (the inverted node: 6 at the start) says what
+    to try for a rotation without a barrier, and what failed for the one with it."""
+    from tissue.fem import Material
+
+    cell = dict(case="inverted", mode="node", dt=0.04, rotation=rotation)
+    mesh = stability._mesh()
+    x, v, fixed = stability.initial_state(cell, mesh)
+    solver = stability.solver_for(cell, mesh, Material(1e4, 0.45, 1000.0))
+    solver.set_fixed(fixed)
+    solver.set_state(x, v)
+    with pytest.warns(UserWarning, match="6 elements are inverted") as caught:
+        solver.step()
+    assert any(advice in str(w.message) for w in caught), [str(w.message) for w in caught]
+
+
 def test_hard_jerk_of_the_clamped_end_stays_bounded(backend):
     r = outcome(dict(case="jerk", mode="half-length", dt=0.04, steps=100, rotation="polar"))
     assert r["outcome"] == "bounded", r

@@ -464,10 +464,14 @@ class ImplicitEuler:
                          inverted_elements=int(inverted))
         if inverted and not self._warned_inversion:
             self._warned_inversion = True
-            warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; linear "
-                          "co-rotational elements have no inversion barrier, so the material may be too "
-                          f"soft for its load (E={self.fem.material.young}) or dt too large (dt={self.dt}); "
-                          "'polar' rotations recover better than 'large'", stacklevel=3)
+            load, step = f"E={self.fem.material.young}", f"dt={self.dt}"
+            why = (f"the 'invertible' barrier did not hold them off: dt may be too large for its tangent, "
+                   f"taken at the step's start ({step}), or the load past its restoring stress ({load})"
+                   if self.fem.rotation == "invertible" else
+                   f"linear co-rotational elements have no inversion barrier, so the material may be too soft "
+                   f"for its load ({load}) or dt too large ({step}); rotation 'invertible' adds one, and "
+                   "'polar' rotations recover better than 'large'")
+            warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; {why}", stacklevel=3)
         # A non-finite right-hand side (NaN positions, or NaN velocities at fixed nodes) stops the CG
         # at once with dv = 0, so the velocities alone would not show it.
         if nonfinite > 0 or not (math.isfinite(rhs2) and math.isfinite(res2)):
