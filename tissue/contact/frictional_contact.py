@@ -22,8 +22,8 @@ the 1 + keeps it defined for q = 0.)
 Methods (each in its module; this one validates, uploads and dispatches):
   * "auto" (the contact stage's default): Gauss-Seidel over the whole problem while it makes
     progress (every AUTO_PHASE sweeps, AUTO_PHASE_LARGE from AUTO_LARGE contacts on, at least
-    halve the residual, at a rate that reaches the tolerance within AUTO_SWEEPS, one launch), then
-    "newton" from where it stopped. Warm-started
+    halve the residual, at a rate that reaches the tolerance within AUTO_HORIZON sweeps, at most
+    AUTO_SWEEPS of them, one launch), then "newton" from where it stopped. Warm-started
     problems of a few hundred rows mostly end within the sweeps, at microseconds each; the rest
     (many strongly coupled contacts, often more rows than the dofs they move: the press plate's
     2,382-3,465 rows, where a sweep gains ~1 % of the residual) end in a few Newton steps
@@ -72,7 +72,7 @@ REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while t
 AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE sweeps halve the residual, at
                                   # a rate that reaches the tolerance within AUTO_HORIZON sweeps, at most
 AUTO_HORIZON = 100                # AUTO_SWEEPS, then Newton (Anderson's sweeps gain fast late: most of
-                                  # liver_press's problems that reach the tolerance within 72 sweeps are
+                                  # liver_press's problems that reach the tolerance within 65 sweeps are
                                   # 30-500× above it at sweep 32, and Newton's step costs ~30 sweeps)
 AUTO_LARGE, AUTO_PHASE_LARGE = 1000, 4  # ... phases of 4 sweeps from 1,000 contacts on, where a sweep
                                         # costs tens of ms (the press plate's 1,155 contacts, factored: ~20),
@@ -389,9 +389,9 @@ class FrictionalContactSolver:
         """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
         sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps (AUTO_PHASE_LARGE on large
         problems, where sweeps cost more than Newton's first steps) at least halve the residual, at
-        a rate that reaches the tolerance within AUTO_SWEEPS sweeps, in one launch; then Newton
-        from where it stopped (the problems whose sweeps crawl: many coupled contacts, W
-        ill-conditioned or singular)."""
+        a rate that reaches the tolerance within AUTO_HORIZON sweeps (AUTO_SWEEPS on large
+        problems), at most AUTO_SWEEPS, in one launch; then Newton from where it stopped (the
+        problems whose sweeps crawl: many coupled contacts, W ill-conditioned or singular)."""
         cap = min(AUTO_SWEEPS, max_iterations)
         if self.n < AUTO_LARGE:
             its = self._sweeps(cap, tol_abs, AUTO_PHASE, min(AUTO_HORIZON, max_iterations))
