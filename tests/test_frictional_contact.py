@@ -800,3 +800,27 @@ def test_newton_system_solve_matches_lapack(monkeypatch, condition, factorised):
     reference = np.linalg.solve(J, b)
     assert np.linalg.norm(J @ x - b) <= 1e-12 * (np.linalg.norm(b) + np.linalg.norm(x))
     assert np.linalg.norm(x - reference) <= 1e-13 * condition * np.linalg.norm(reference)
+
+
+@pytest.mark.parametrize("horizon", [8, 64])
+def test_auto_gives_up_the_sweeps_by_their_rate_over_its_horizon(solve, monkeypatch, horizon):
+    """auto's sweeps stop when, at their rate over the last phase, they would not reach the
+    tolerance within AUTO_HORIZON sweeps (here phases of 4): a problem Gauss-Seidel finishes in
+    36 sweeps is handed to Newton after the first phase with a horizon of 8, and finished by the
+    sweeps alone with one of 64; both solve it."""
+    from tissue.contact import frictional_contact, newton
+
+    steps, newton_step = [], newton.newton_step
+    monkeypatch.setattr(newton, "newton_step", lambda *a, **k: steps.append(1) or newton_step(*a, **k))
+    monkeypatch.setattr(frictional_contact, "AUTO_PHASE", 4)
+    monkeypatch.setattr(frictional_contact, "AUTO_HORIZON", horizon)
+    rng = np.random.default_rng(11)
+    W = random_delassus(40, rng)
+    q = np.column_stack([rng.uniform(-1, 0.5, 40), rng.standard_normal((40, 2))]).ravel()
+    _, gs = solve(W, q, 0.4, tol=1e-12, max_iterations=200, method="gauss_seidel")
+    ra, auto = solve(W, q, 0.4, tol=1e-12, max_iterations=200, method="auto")
+    assert gs.converged and gs.iterations == 36 and auto.converged and natural_map(W, q, 0.4, ra) <= 1e-12
+    if horizon == 8:
+        assert steps and auto.iterations == 4 + len(steps)
+    else:
+        assert not steps and auto.iterations <= frictional_contact.AUTO_SWEEPS

@@ -108,7 +108,8 @@ class FactoredDelassus:
         """W between contacts `rows` and `cols` (ids) as a dense (3|rows|, 3|cols|) array: per
         segment P_rows Q P_colsᵀ with P sparse (a contact's blocks touch a few nodes) and Q among
         the nodes those blocks touch: O(nnz(P) × nodes), not O(|rows| × nodes²)."""
-        Pr, Pc = self._P(rows), self._P(cols)
+        Pr = self._P(rows)
+        Pc = Pr if cols is rows else self._P(cols)
         W = np.zeros((3 * len(rows), 3 * len(cols)))
         for s in set(Pr) & set(Pc):
             (P, a), (R, b) = Pr[s], Pc[s]

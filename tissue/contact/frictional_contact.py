@@ -22,8 +22,8 @@ the 1 + keeps it defined for q = 0.)
 Methods (each in its module; this one validates, uploads and dispatches):
   * "auto" (the contact stage's default): Gauss-Seidel over the whole problem while it makes
     progress (every AUTO_PHASE sweeps, AUTO_PHASE_LARGE from AUTO_LARGE contacts on, at least
-    halve the residual, at a rate that reaches the tolerance within AUTO_SWEEPS, one launch), then
-    "newton" from where it stopped. Warm-started
+    halve the residual, at a rate that reaches the tolerance within AUTO_HORIZON sweeps, at most
+    AUTO_SWEEPS of them, one launch), then "newton" from where it stopped. Warm-started
     problems of a few hundred rows mostly end within the sweeps, at microseconds each; the rest
     (many strongly coupled contacts, often more rows than the dofs they move: the press plate's
     2,382-3,465 rows, where a sweep gains ~1 % of the residual) end in a few Newton steps
@@ -70,9 +70,13 @@ CSR_MIN_ROWS, CSR_MAX_FILL = 600, 0.2
 ANDERSON_WINDOW = 5       # Gauss-Seidel's Anderson acceleration: sweeps combined (0: plain sweeps)
 REDUCE_FRACTION = 0.5     # reduce: Gauss-Seidel on the contacts in play while they are at most this fraction
 AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE sweeps halve the residual, at
-                                  # a rate that reaches the tolerance within AUTO_SWEEPS, then Newton
+                                  # a rate that reaches the tolerance within AUTO_HORIZON sweeps, at most
+AUTO_HORIZON = 100                # AUTO_SWEEPS, then Newton (Anderson's sweeps gain fast late: most of
+                                  # liver_press's problems that reach the tolerance within 65 sweeps are
+                                  # 30-500× above it at sweep 32, and Newton's step costs ~30 sweeps)
 AUTO_LARGE, AUTO_PHASE_LARGE = 1000, 4  # ... phases of 4 sweeps from 1,000 contacts on, where a sweep
-                                        # costs tens of ms (the press plate's 1,155 contacts, factored: ~20)
+                                        # costs tens of ms (the press plate's 1,155 contacts, factored: ~20),
+                                        # the rate's horizon AUTO_SWEEPS
 
 
 @dataclass
@@ -229,13 +233,13 @@ class FrictionalContactSolver:
             hist, gram = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
             P = dict(q=q, mu=st.get("mu", room, real), r=st.get("r", 3 * room, real), u=st.get("u", 3 * room, real),
                      hist=st.get("hist", hist[0], real, hist[1:]), gram=st.get("gram", gram[0], real, gram[1:]),
-                     stats=st.get("stats", 3, real), sizes=st.get("sizes", 4, ti.i32), reals=st.get("reals", 1, real))
+                     stats=st.get("stats", 3, real), sizes=st.get("sizes", 5, ti.i32), reals=st.get("reals", 1, real))
             self._P = st.pack("problem", PROBLEM, **P)
             self._q, self._r, self._u = P["q"], P["r"], P["u"]
             size = None
         st.put("mu", self.mu, real)
         if n != size:
-            st.put("sizes", np.array([n, window, 0, 0]), ti.i32)
+            st.put("sizes", np.array([n, window, 0, 0, 0]), ti.i32)
         # W in its layout (see tissue.contact.layouts), the factored layout's y and z (one element
         # elsewhere), its sizes and its scale.
         none = st.get("none", 1, real)
@@ -326,11 +330,11 @@ class FrictionalContactSolver:
         info = ContactInfo(iterations, residual, elapsed, residual <= tol, self.method)
         return r, info
 
-    def _sweeps(self, max_iterations, tol_abs, stall: int = 0) -> int:
+    def _sweeps(self, max_iterations, tol_abs, stall: int = 0, horizon: int | None = None) -> int:
         """Gauss-Seidel sweeps over the whole problem from the current r, in one launch (see
         gauss_seidel.run); sets self._last_error2 and self._stalled."""
         its, self._last_error2, self._stalled = gauss_seidel.run(self.layout, self._W, self._P, max_iterations,
-                                                                 tol_abs, stall)
+                                                                 tol_abs, stall, horizon)
         return its
 
     def _gauss_seidel(self, max_iterations, tol_abs):
@@ -385,11 +389,14 @@ class FrictionalContactSolver:
         """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
         sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps (AUTO_PHASE_LARGE on large
         problems, where sweeps cost more than Newton's first steps) at least halve the residual, at
-        a rate that reaches the tolerance within AUTO_SWEEPS sweeps, in one launch; then Newton
-        from where it stopped (the problems whose sweeps crawl: many coupled contacts, W
-        ill-conditioned or singular)."""
-        phase = AUTO_PHASE if self.n < AUTO_LARGE else AUTO_PHASE_LARGE
-        its = self._sweeps(min(AUTO_SWEEPS, max_iterations), tol_abs, phase)
+        a rate that reaches the tolerance within AUTO_HORIZON sweeps (AUTO_SWEEPS on large
+        problems), at most AUTO_SWEEPS, in one launch; then Newton from where it stopped (the
+        problems whose sweeps crawl: many coupled contacts, W ill-conditioned or singular)."""
+        cap = min(AUTO_SWEEPS, max_iterations)
+        if self.n < AUTO_LARGE:
+            its = self._sweeps(cap, tol_abs, AUTO_PHASE, min(AUTO_HORIZON, max_iterations))
+        else:
+            its = self._sweeps(cap, tol_abs, AUTO_PHASE_LARGE)
         if self._last_error2 <= tol_abs ** 2 or its >= max_iterations:
             return its
         return its + self._newton(max_iterations - its, tol_abs)

@@ -25,7 +25,7 @@ import taichi as ti
 
 from .cone import _block, _contact_error2, _local_solve, _project, _vec
 from ..launch import replayed
-from .layouts import CONTACTS, DELASSUS, FACTORED, MAX_SWEEPS, PROBLEM, STALL, TOL2, WINDOW, _refresh, _residual, _spread, _wr
+from .layouts import CONTACTS, DELASSUS, FACTORED, HORIZON, MAX_SWEEPS, PROBLEM, STALL, TOL2, WINDOW, _refresh, _residual, _spread, _wr
 
 ANDERSON_RESTARTS = 10    # rejecting a combination that starts worse than the sweep before, at most this often
 REVISIT_EVERY = 8         # every this many sweeps, one that visits the contacts apart too
@@ -134,12 +134,14 @@ def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti
 # the start and the end); between two, u holds each contact's value when it was last solved.
 # ----------------------------------------------------------------------------------------------
 
-def run(layout: int, W, P, max_iterations: int, tol_abs: float, stall: int = 0):
+def run(layout: int, W, P, max_iterations: int, tol_abs: float, stall: int = 0, horizon: int | None = None):
     """Sweeps from P.r (0 sweeps: u and the residual of r alone), in one launch (replayed: the
-    sweep cap, the stall phase and the tolerance are written into P.sizes and P.reals); with
-    `stall`, stopped early when that many sweeps did not halve the residual or, at their rate,
-    would not reach tol_abs within max_iterations. Returns (sweeps, error², stalled)."""
+    sweep cap, the stall phase, its horizon and the tolerance are written into P.sizes and
+    P.reals); with `stall`, stopped early when that many sweeps did not halve the residual or, at
+    their rate, would not reach tol_abs within `horizon` sweeps (default: max_iterations).
+    Returns (sweeps, error², stalled)."""
     P.sizes[MAX_SWEEPS], P.sizes[STALL], P.reals[TOL2] = max_iterations, stall, tol_abs ** 2
+    P.sizes[HORIZON] = max_iterations if horizon is None else horizon
     _sweeps_replayed(layout, W, P)
     stats = P.stats.to_numpy()
     return int(stats[0]), float(stats[1]), bool(stats[2])
@@ -148,10 +150,10 @@ def run(layout: int, W, P, max_iterations: int, tol_abs: float, stall: int = 0):
 @ti.kernel
 def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     """Sweeps until the residual is ≤ tol2 (squared) or max_it sweeps; with stall > 0 also when
-    `stall` sweeps did not halve the residual, or would not reach tol2 within max_it at the rate
-    of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps."""
+    `stall` sweeps did not halve the residual, or would not reach tol2 within `horizon` sweeps at
+    the rate of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps."""
     n, window = P.sizes[CONTACTS], P.sizes[WINDOW]
-    max_it, stall, tol2 = P.sizes[MAX_SWEEPS], P.sizes[STALL], P.reals[TOL2]
+    max_it, stall, horizon, tol2 = P.sizes[MAX_SWEEPS], P.sizes[STALL], P.sizes[HORIZON], P.reals[TOL2]
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
     _refresh(layout, W, P.r, n)
@@ -162,10 +164,10 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             if err2 <= tol2 or it >= max_it:
                 break
             if at_phase:
-                # Stalled: these sweeps did not halve the residual, or at their rate the cap
+                # Stalled: these sweeps did not halve the residual, or at their rate the horizon
                 # comes before the tolerance (then the sweeps to it are spent for nothing).
                 if it > 0 and (err2 > 0.25 * phase_err2 or
-                               err2 * ti.pow(err2 / phase_err2, (max_it - it) / stall) > tol2):
+                               err2 * ti.pow(err2 / phase_err2, (horizon - it) / stall) > tol2):
                     stalled = 1
                     break
                 phase_err2 = err2

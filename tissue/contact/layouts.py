@@ -37,9 +37,10 @@ PROBLEM = ti.types.argpack(q=ti.types.ndarray(), mu=ti.types.ndarray(), r=ti.typ
                            hist=ti.types.ndarray(), gram=ti.types.ndarray(), stats=ti.types.ndarray(),
                            sizes=ti.types.ndarray(), reals=ti.types.ndarray())
 # W.dims (int): the factored layout's blocks and segments. P.sizes (int): contacts, Anderson's
-# window, the sweep cap, the stall phase (gauss_seidel.run). P.reals: the squared tolerance.
+# window, the sweep cap, the stall phase and its horizon (gauss_seidel.run). P.reals: the squared
+# tolerance.
 NNZ, SEGMENTS = 0, 1
-CONTACTS, WINDOW, MAX_SWEEPS, STALL = 0, 1, 2, 3
+CONTACTS, WINDOW, MAX_SWEEPS, STALL, HORIZON = 0, 1, 2, 3, 4
 TOL2 = 0
 
 

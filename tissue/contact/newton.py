@@ -128,12 +128,15 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
 class _Shared:
     """What consecutive Newton steps of one solve share: W among the closing contacts, formed
     once while they stay the same (on the press plate's 2,166 closing rows a slice of W costs a
-    third of the LU; the line search rarely changes which contacts close), and the last float32
+    third of the LU; the line search rarely changes which contacts close), W between them and the
+    separating contacts still pushing (`carry`: after a step the line search cut, the same ones
+    again; from W's factors a block costs a millisecond or two on liver_press), and the last float32
     LU of a Newton system with each contact's state then (0 separating, 1 sticking, 2 sliding;
     see newton_step)."""
 
     def __init__(self):
         self.closing, self.Waa, self.lu, self.state = None, None, None, None
+        self.carry, self.Wac = None, None
 
 
 def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forcing=None):
@@ -150,11 +153,13 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     a, k = len(act), 3 * len(act)
     rhs = -phi[act]
     carry = np.flatnonzero(~closing & (r != 0).any(axis=1))      # separating, still pushing: dr = -r
-    if len(carry):
-        rhs -= np.matmul(B[act], (W_block(act, carry) @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
     if shared.closing is None or not np.array_equal(shared.closing, act):
         all_closing = a == len(phi) and isinstance(W, np.ndarray)                  # (no copy)
-        shared.closing, shared.Waa = act, W if all_closing else W_block(act, act)
+        shared.closing, shared.Waa, shared.carry = act, W if all_closing else W_block(act, act), None
+    if len(carry):
+        if shared.carry is None or not np.array_equal(shared.carry, carry):
+            shared.carry, shared.Wac = carry, W_block(act, carry)
+        rhs -= np.matmul(B[act], (shared.Wac @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
     Waa = shared.Waa
     J = np.matmul(B[act], Waa.reshape(a, 3, k)).reshape(k, k)
     idx = np.arange(a)
@@ -292,10 +297,17 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
     r = np.asarray(r0, dtype=np.float64).reshape(n, 3).copy()
     its, boost, shared = 0, 1.0, _Shared()
     anchor, eps, inner, previous = None, 0.0, 0, None
+    u, exact = None, False
     while True:
-        u = (W @ r.ravel() + q).reshape(n, 3)          # afresh: the stopping rule reads the exact u
+        # u follows the accepted steps (u + t W dr: one product a step); the stopping rule reads
+        # u afresh, W r + q, before it stops, as it does after a Gauss-Seidel fallback.
+        if u is None:
+            u, exact = (W @ r.ravel() + q).reshape(n, 3), True
         err2 = error2(r.ravel(), u.ravel())
         if err2 <= tol_abs ** 2 or its >= max_iterations:
+            if not exact:
+                u = None
+                continue
             return r.ravel(), u.ravel(), its, err2
         if anchor is None and boost >= CRAWL:
             # Crawling: proximal points from here on (see the module docstring); W_block among
@@ -317,11 +329,12 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
         previous = np.sqrt(2.0 * merit)
         if anchor is None:
             dr = newton_step(W, W_block, r, phi, A, B, closing, boost, shared, forcing)
-            du = (W @ dr.ravel()).reshape(n, 3)
+            wdr = du = (W @ dr.ravel()).reshape(n, 3)
         else:
             block = lambda rows, cols: W_block(rows, cols) + (eps * np.eye(3 * len(rows)) if rows is cols else 0.0)
             dr = newton_step(None, block, r, phi, A, B, closing, boost, shared)
-            du = (W @ dr.ravel()).reshape(n, 3) + eps * dr
+            wdr = (W @ dr.ravel()).reshape(n, 3)
+            du = wdr + eps * dr
             inner += 1
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
@@ -336,7 +349,8 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
         boost = max(1.0, 0.1 * boost) if t == 1.0 else min(BOOST_MAX, 10.0 * boost)
         if accepted:
             r += t * dr
+            u, exact = u + t * wdr, False
         else:
             r, sweeps = gauss_seidel(r.ravel(), min(GS_FALLBACK, max(0, max_iterations - its)))
-            r = r.reshape(n, 3)
+            r, u = r.reshape(n, 3), None
             its += sweeps
