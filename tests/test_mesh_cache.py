@@ -94,3 +94,30 @@ def test_an_unwritable_cache_is_skipped(tmp_path, monkeypatch):
     monkeypatch.setenv("TISSUE_CACHE", str(blocker))     # meshes/ cannot be made under a file
     assert same(cache.cached_mesh(lambda: box(cells=(2, 1, 1)), "test"), box(cells=(2, 1, 1)))
     assert not (blocker / "meshes").exists()
+
+
+def test_an_organ_with_other_tets_starts_from_the_cached_surface(cache_dir, monkeypatch):
+    """The organ's surface (marching cubes, smoothing, decimation: most of an organ's seconds) is
+    cached once for any number of tetrahedra: the stomach at 300 then at 320 tetrahedra extracts
+    it once, and the second mesh equals one made from a freshly extracted surface."""
+    from tissue.mesh import organs
+
+    organs._cached.cache_clear()
+    organ_mesh("stomach", target_tets=300)
+    assert len(list(cache_dir.glob("organ_surface-*.npz"))) == 1
+    extract = organs._extract
+
+    def no_extraction(*args, **kwargs):
+        raise AssertionError("the surface was extracted again")
+
+    monkeypatch.setattr(organs, "_extract", no_extraction)
+    organs._cached.cache_clear()
+    from_cache = organ_mesh("stomach", target_tets=320)
+    monkeypatch.setattr(organs, "_extract", extract)
+    for path in cache_dir.glob("*.npz"):
+        path.unlink()
+    organs._cached.cache_clear()
+    try:
+        assert same(from_cache, organ_mesh("stomach", target_tets=320))
+    finally:
+        organs._cached.cache_clear()

@@ -1,4 +1,5 @@
 """An on-disk cache of generated meshes: a procedural organ takes seconds to make, milliseconds to load.
+Its surface is cached too (`cached_arrays`): every tetrahedralisation of the organ starts from it.
 
 Files are `.npz` under `$TISSUE_CACHE/meshes/`, else `~/.cache/tissue/meshes/`, named by a hash of
 what the mesh depends on: the generator's name and parameters, `VERSION`, the source of the
@@ -51,17 +52,30 @@ def path_for(kind: str, **params) -> Path:
     return directory() / f"{kind}-{hashlib.sha256(key.encode()).hexdigest()[:20]}.npz"
 
 
-def cached_mesh(make: Callable[[], TetMesh], kind: str, **params) -> TetMesh:
-    """The mesh `make()` returns, from the cache when it holds one for (kind, params)."""
+def cached_arrays(make: Callable[[], dict], names: tuple[str, ...], kind: str, **params) -> dict:
+    """The arrays `names` of the dict `make()` returns, from the cache when it holds them for
+    (kind, params)."""
     path = path_for(kind, **params)
     try:
         with np.load(path, allow_pickle=False) as data:
-            return TetMesh(data["points"], data["tets"], source=str(data["source"]))
+            return {name: data[name] for name in names}
     except Exception:  # noqa: BLE001 - missing, or damaged in any way: a cache miss
         pass
-    mesh = make()
-    _write(path, points=mesh.points, tets=mesh.tets, source=np.array(mesh.source))
-    return mesh
+    arrays = make()
+    _write(path, **{name: arrays[name] for name in names})
+    return arrays
+
+
+def cached_mesh(make: Callable[[], TetMesh], kind: str, **params) -> TetMesh:
+    """The mesh `make()` returns, from the cache when it holds one for (kind, params)."""
+    made = []
+
+    def arrays():
+        made.append(make())
+        return dict(points=made[0].points, tets=made[0].tets, source=np.array(made[0].source))
+
+    data = cached_arrays(arrays, ("points", "tets", "source"), kind, **params)
+    return made[0] if made else TetMesh(data["points"], data["tets"], source=str(data["source"]))
 
 
 def _write(path: Path, **arrays) -> None:

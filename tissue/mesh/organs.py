@@ -255,6 +255,16 @@ def _extract(implicit, lo, hi, grid_spacing: float, target_triangles: int, smoot
 
 @lru_cache(maxsize=None)
 def _cached(name: str):
+    """The organ's surface, made once per machine (the mesh cache keeps it): a mesh of the organ
+    with another number of tetrahedra starts from it, without marching cubes (nor pyvista)."""
+    from .cache import cached_arrays
+
+    surface = cached_arrays(lambda: dict(zip(("points", "triangles"), _surface(name))), ("points", "triangles"),
+                            "organ_surface", name=name)
+    return surface["points"], surface["triangles"]
+
+
+def _surface(name: str):
     if name == "liver":
         return _extract(_liver_implicit, (-0.135, -0.09, -0.07), (0.075, 0.085, 0.085), 0.0015, 5000,
                         smooth_iterations=60)
