@@ -34,7 +34,7 @@ from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL, real_numpy
 from ..fem.regime import check_regime
-from ..launch import host_view, replayed
+from ..launch import host_view, kept_pack, replayed
 from ..stats import Stats
 from . import multigrid
 from .multigrid import MULTIGRID_MEMBERS, Multigrid
@@ -113,6 +113,7 @@ DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERA
 # level of nesting: measured here, a nested pack cost ~30 % more than a flat one in such loops.
 STEP_MEMBERS = (*MODEL.members, *FEM_WORK.members, *STATE_MEMBERS, *BLOCKS.members, *MULTIGRID_MEMBERS)
 STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS})
+BLOCK_MEMBERS = tuple(BLOCKS.members)
 # Nodes per block of the partial sums (dot products summed in a fixed order: bit-identical reruns).
 BLOCK = 1024
 
@@ -195,7 +196,7 @@ class ImplicitEuler:
         self._nodes = 0                # the model's nodes that the state holds
         self._node_staging = None      # set_nodes' host rows
         self.allocations = 0           # state allocations: 1, plus one per growth of the model
-        self._pack_key = None
+        self._pack = None
         self.multigrid = None
         self.parameters = parameters
         self._checked_material = None     # the material check_regime last passed
@@ -310,13 +311,10 @@ class ImplicitEuler:
         """The argpack of a launch, rebuilt only when one of its arrays was re-allocated."""
         self._resize()
         arrays = {**self.model.arrays, **self.fem.work_arrays, **self.arrays,
-                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCKS.members)),
+                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCK_MEMBERS)),
                   **(self.multigrid.arrays if self.multigrid is not None else _unused(MULTIGRID_MEMBERS))}
-        key = tuple(id(a) for a in arrays.values())
-        if key != self._pack_key:
-            self._pack = STEP(**arrays)
-            self._pack_key = key
-        return self._pack
+        self._pack = kept_pack(self._pack, STEP, arrays)
+        return self._pack[0]
 
     # ---- state at the numpy boundary --------------------------------------------------------
 
@@ -497,8 +495,9 @@ def _write_nodes(x: ti.types.ndarray(), v: ti.types.ndarray(), ids: ti.types.nda
 WRITE_NODES = replayed(_write_nodes)
 
 
-def _unused(members) -> dict:
-    """Arrays for the members a scheme does not read (one entry each)."""
+@functools.cache
+def _unused(members: tuple) -> dict:
+    """Arrays for the members a scheme does not read (one entry each; one dict per member list)."""
     return {name: _one_entry() for name in members}
 
 
