@@ -429,7 +429,7 @@ class ImplicitEuler:
         k, o, tol = self.prepare_step()
         if self.execution == "serial" and not self.split_stages:
             with self.stats.stage("step"):
-                report = SERIAL(k, o, "step", tol)
+                SERIAL(k, o, "step", tol)
         else:
             with self.stats.stage("rotations+forces"):
                 if self.execution == "serial":
@@ -438,12 +438,24 @@ class ImplicitEuler:
                     BEGIN_PARALLEL(k, o, tol)
             with self.stats.stage("cg"):
                 if self.execution == "serial":
-                    report = SERIAL(k, o, "solve", tol)
+                    SERIAL(k, o, "solve", tol)
                 else:
                     for _ in range(-(-self.cg.max_iterations // self.unroll)):
                         ITERATE_PARALLEL(k, o)
-                    report = END_PARALLEL(k, o)
-        self.record_step(report)
+                    END_PARALLEL(k, o)
+        self.record_step(self.report())
+
+    def report(self) -> tuple:
+        """The last step's CG report, as the kernels' `_report` has it (iterations, ‖r‖², ‖b‖²,
+        breakdown, non-finite nodes, inverted elements), read where the step left it: on the CPU
+        in the arrays' own memory (a kernel's return costs ~1 µs a value to read)."""
+        scalars, inverted = self.arrays["scalars"], self.fem.work_arrays["inverted"]
+        if backend.current().arch == "cpu":
+            scalars, inverted = self._view(scalars), self._view(inverted)
+        else:
+            scalars, inverted = scalars.to_numpy(), inverted.to_numpy()
+        return (scalars[ITERATION], scalars[RES2], scalars[RHS2], scalars[BREAKDOWN], scalars[NONFINITE],
+                inverted[0])
 
     def prepare_step(self):
         """What a step's launches take: (the argpack, the scheme, the rotations' tolerance), after
@@ -850,23 +862,20 @@ def _iterate_parallel(k: STEP, o: ti.template()):
         _iteration(k, o)
 
 
-# The step's report comes back as float64: a type written with `float` is resolved when the module
-# is imported, before ti.init chose the precision, so it would be float32.
+# The values of `_report` (a kernel returning them: tissue.solver.step_control).
 REPORT_SIZE = 6
-REPORT = ti.types.vector(REPORT_SIZE, ti.f64)
 
 
 @ti.kernel
-def _end_parallel(k: STEP, o: ti.template()) -> REPORT:
+def _end_parallel(k: STEP, o: ti.template()):
     _end(k)
-    return _report(k)
 
 
 @compilation.without_ir_passes(_multigrid)
 @ti.kernel
-def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> REPORT:
+def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64):
     """The whole step ("step"), or its "begin" (up to the right-hand side) or "solve" (the CG) part,
-    in one CPU thread."""
+    in one CPU thread. The report stays in the arrays (ImplicitEuler.report)."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         if ti.static(part != "solve"):
@@ -874,7 +883,6 @@ def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> REPO
         if ti.static(part != "begin"):
             _solve_serial(k, o)
             _end(k)
-    return _report(k)
 
 
 SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (
