@@ -446,9 +446,9 @@ class ImplicitEuler:
         self.record_step(self.report())
 
     def report(self) -> tuple:
-        """The last step's CG report, as the kernels' `_report` has it (iterations, ‖r‖², ‖b‖²,
-        breakdown, non-finite nodes, inverted elements), read where the step left it: on the CPU
-        in the arrays' own memory (a kernel's return costs ~1 µs a value to read)."""
+        """The last step's CG report (iterations, ‖r‖², ‖b‖², breakdown, non-finite nodes, inverted
+        elements), read where the step's kernels left it: on the CPU in the arrays' own memory (a
+        kernel's return costs ~1 µs a value to read)."""
         scalars, inverted = self.arrays["scalars"], self.fem.work_arrays["inverted"]
         if backend.current().arch == "cpu":
             scalars, inverted = self._view(scalars), self._view(inverted)
@@ -466,7 +466,7 @@ class ImplicitEuler:
         return self._step_pack(), self.scheme, self.fem.rotation_tolerance
 
     def record_step(self, report) -> None:
-        """Count the step's CG report (`_report`) in the stats; warn of inverted elements once;
+        """Count the step's CG report (`report`) in the stats; warn of inverted elements once;
         raise TissueError if the state became non-finite."""
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
@@ -833,12 +833,6 @@ def _end(k: ti.template()):
         k.scalars[NONFINITE] = _sum_partials(k, 1)
 
 
-@ti.func
-def _report(k: ti.template()):
-    return ti.Vector([k.scalars[ITERATION], k.scalars[RES2], k.scalars[RHS2], k.scalars[BREAKDOWN],
-                      k.scalars[NONFINITE], ti.cast(k.inverted[0], float)])
-
-
 def _multigrid(k, o, *_) -> bool:
     """A step kernel's instance with the multigrid V-cycle inlined: where Taichi's IR passes, chosen
     per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (the
@@ -860,10 +854,6 @@ def _begin_parallel(k: STEP, o: ti.template(), tol: ti.f64):
 def _iterate_parallel(k: STEP, o: ti.template()):
     for _ in ti.static(range(o.unroll)):
         _iteration(k, o)
-
-
-# The values of `_report` (a kernel returning them: tissue.solver.step_control).
-REPORT_SIZE = 6
 
 
 @ti.kernel
