@@ -458,13 +458,3 @@ def test_inverted_elements_are_counted_and_reported(backend):
         sim.step()
     assert expected == mesh.n_tets
     assert sim.stats.counters["inverted_elements"] == expected
-
-
-def test_the_step_report_is_float64_whatever_the_import_order():
-    """The kernels' report type is fixed at import, before ti.init picks the precision: written with
-    `float` it came back float32 (the residuals of the run's table rounded to 7 digits)."""
-    import taichi as ti
-
-    from tissue.solver import implicit_euler
-
-    assert implicit_euler.REPORT.dtype == ti.f64

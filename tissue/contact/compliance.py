@@ -84,7 +84,7 @@ FACTORIZATIONS = ("auto", "cholmod", "lu")
 SIMPLICIAL_DOFS = 2500      # free dofs up to which CHOLMOD factorises simplicially (see above)
 from ..fem.corotational import element_rotation, nodal_rotation
 from ..fem.model import MODEL, real_numpy
-from ..launch import host_view, replayed
+from ..launch import host_view, kept_pack, replayed
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 from .storage import Storage
@@ -356,7 +356,7 @@ class WarpedCompliance:
         self._own_polar = solver.fem.rotation != "large"     # else its polar rotations: element_rotations
         self.storage = Storage()                              # this step's scratch: see prepare
         self._ready = False
-        self._pack_key = None
+        self._kept_pack = None
         # The step's scalars (see WARP), written in place each step.
         self._sizes, self._reals = np.zeros(len(WARP_SIZES), np.int32), np.zeros(len(WARP_REALS), self._np)
         self.follow_edits()
@@ -465,10 +465,8 @@ class WarpedCompliance:
                       rows=self.rows, hr=self.hr, U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
                       pushed=self.pushed, x=self.solver.x, v=self.solver.v, sizes=self._scalars[0],
                       reals=self._scalars[1])
-        key = tuple(id(a) for a in arrays.values())
-        if key != self._pack_key:
-            self._pack_arrays, self._pack_key = WARP(**arrays), key
-        return self._pack_arrays
+        self._kept_pack = kept_pack(self._kept_pack, WARP, arrays)
+        return self._kept_pack[0]
 
     def _read_source(self, touched: np.ndarray) -> np.ndarray:
         """C0 from the cutting compliance followed, and per touched node its block of rows in C0.

@@ -46,7 +46,7 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
-from ..launch import replayed
+from ..launch import kept_pack, replayed
 from .obstacles import BOX, CAPSULE, PLANE, SPHERE
 from .storage import Storage
 
@@ -610,11 +610,8 @@ class Detector:
     def _pack(self, pair, **arrays):
         """The launch's argpack for the body pair `pair`, rebuilt only when one of its arrays is
         another object (a grown grid, new bodies): the same pack step after step replays."""
-        key = tuple(id(a) for a in arrays.values())
-        kept = self._packs.get(pair)
-        if kept is None or kept[0] != key:
-            kept = self._packs[pair] = (key, DETECT(**arrays))
-        return kept[1]
+        kept = self._packs[pair] = kept_pack(self._packs.get(pair), DETECT, arrays)
+        return kept[0]
 
     def _mesh(self, a, x, o, obstacle, pose, out, alarm, moving) -> None:
         """Hits on a triangle-mesh obstacle (open3d), by the kernel's rule for primitives: within

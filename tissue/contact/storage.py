@@ -17,7 +17,7 @@ import numpy as np
 import taichi as ti
 
 from .. import backend
-from ..launch import host_view
+from ..launch import host_view, kept_pack
 
 
 class HostArray(np.ndarray):
@@ -117,10 +117,6 @@ class Storage:
     def pack(self, name, kind, **arrays):
         """The argpack `kind` over `arrays`, kept under `name` and built again only when one of
         them is another object (after a growth): building one costs ~0.15 ms in Taichi, and
-        launches over a kept one replay (tissue.launch). The pack holds its arrays, so their ids
-        stay theirs while it is kept."""
-        key = tuple(id(a) for a in arrays.values())
-        kept = self._packs.get(name)
-        if kept is None or kept[0] != key:
-            kept = self._packs[name] = (key, kind(**arrays))
-        return kept[1]
+        launches over a kept one replay (tissue.launch.kept_pack)."""
+        kept = self._packs[name] = kept_pack(self._packs.get(name), kind, arrays)
+        return kept[0]

@@ -34,7 +34,7 @@ from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL, real_numpy
 from ..fem.regime import check_regime
-from ..launch import host_view, replayed
+from ..launch import host_view, kept_pack, replayed
 from ..stats import Stats
 from . import multigrid
 from .multigrid import MULTIGRID_MEMBERS, Multigrid
@@ -113,6 +113,7 @@ DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERA
 # level of nesting: measured here, a nested pack cost ~30 % more than a flat one in such loops.
 STEP_MEMBERS = (*MODEL.members, *FEM_WORK.members, *STATE_MEMBERS, *BLOCKS.members, *MULTIGRID_MEMBERS)
 STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS})
+BLOCK_MEMBERS = tuple(BLOCKS.members)
 # Nodes per block of the partial sums (dot products summed in a fixed order: bit-identical reruns).
 BLOCK = 1024
 
@@ -195,7 +196,7 @@ class ImplicitEuler:
         self._nodes = 0                # the model's nodes that the state holds
         self._node_staging = None      # set_nodes' host rows
         self.allocations = 0           # state allocations: 1, plus one per growth of the model
-        self._pack_key = None
+        self._pack = None
         self.multigrid = None
         self.parameters = parameters
         self._checked_material = None     # the material check_regime last passed
@@ -310,13 +311,10 @@ class ImplicitEuler:
         """The argpack of a launch, rebuilt only when one of its arrays was re-allocated."""
         self._resize()
         arrays = {**self.model.arrays, **self.fem.work_arrays, **self.arrays,
-                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCKS.members)),
+                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCK_MEMBERS)),
                   **(self.multigrid.arrays if self.multigrid is not None else _unused(MULTIGRID_MEMBERS))}
-        key = tuple(id(a) for a in arrays.values())
-        if key != self._pack_key:
-            self._pack = STEP(**arrays)
-            self._pack_key = key
-        return self._pack
+        self._pack = kept_pack(self._pack, STEP, arrays)
+        return self._pack[0]
 
     # ---- state at the numpy boundary --------------------------------------------------------
 
@@ -431,7 +429,7 @@ class ImplicitEuler:
         k, o, tol = self.prepare_step()
         if self.execution == "serial" and not self.split_stages:
             with self.stats.stage("step"):
-                report = SERIAL(k, o, "step", tol)
+                SERIAL(k, o, "step", tol)
         else:
             with self.stats.stage("rotations+forces"):
                 if self.execution == "serial":
@@ -440,12 +438,24 @@ class ImplicitEuler:
                     BEGIN_PARALLEL(k, o, tol)
             with self.stats.stage("cg"):
                 if self.execution == "serial":
-                    report = SERIAL(k, o, "solve", tol)
+                    SERIAL(k, o, "solve", tol)
                 else:
                     for _ in range(-(-self.cg.max_iterations // self.unroll)):
                         ITERATE_PARALLEL(k, o)
-                    report = END_PARALLEL(k, o)
-        self.record_step(report)
+                    END_PARALLEL(k, o)
+        self.record_step(self.report())
+
+    def report(self) -> tuple:
+        """The last step's CG report (iterations, ‖r‖², ‖b‖², breakdown, non-finite nodes, inverted
+        elements), read where the step's kernels left it: on the CPU in the arrays' own memory (a
+        kernel's return costs ~1 µs a value to read)."""
+        scalars, inverted = self.arrays["scalars"], self.fem.work_arrays["inverted"]
+        if backend.current().arch == "cpu":
+            scalars, inverted = self._view(scalars), self._view(inverted)
+        else:
+            scalars, inverted = scalars.to_numpy(), inverted.to_numpy()
+        return (scalars[ITERATION], scalars[RES2], scalars[RHS2], scalars[BREAKDOWN], scalars[NONFINITE],
+                inverted[0])
 
     def prepare_step(self):
         """What a step's launches take: (the argpack, the scheme, the rotations' tolerance), after
@@ -456,7 +466,7 @@ class ImplicitEuler:
         return self._step_pack(), self.scheme, self.fem.rotation_tolerance
 
     def record_step(self, report) -> None:
-        """Count the step's CG report (`_report`) in the stats; warn of inverted elements once;
+        """Count the step's CG report (`report`) in the stats; warn of inverted elements once;
         raise TissueError if the state became non-finite."""
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
@@ -501,8 +511,9 @@ def _write_nodes(x: ti.types.ndarray(), v: ti.types.ndarray(), ids: ti.types.nda
 WRITE_NODES = replayed(_write_nodes)
 
 
-def _unused(members) -> dict:
-    """Arrays for the members a scheme does not read (one entry each)."""
+@functools.cache
+def _unused(members: tuple) -> dict:
+    """Arrays for the members a scheme does not read (one entry each; one dict per member list)."""
     return {name: _one_entry() for name in members}
 
 
@@ -826,12 +837,6 @@ def _end(k: ti.template()):
         k.scalars[NONFINITE] = _sum_partials(k, 1)
 
 
-@ti.func
-def _report(k: ti.template()):
-    return ti.Vector([k.scalars[ITERATION], k.scalars[RES2], k.scalars[RHS2], k.scalars[BREAKDOWN],
-                      k.scalars[NONFINITE], ti.cast(k.inverted[0], float)])
-
-
 def _multigrid(k, o, *_) -> bool:
     """A step kernel's instance with the multigrid V-cycle inlined: where Taichi's IR passes, chosen
     per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (the
@@ -855,23 +860,16 @@ def _iterate_parallel(k: STEP, o: ti.template()):
         _iteration(k, o)
 
 
-# The step's report comes back as float64: a type written with `float` is resolved when the module
-# is imported, before ti.init chose the precision, so it would be float32.
-REPORT_SIZE = 6
-REPORT = ti.types.vector(REPORT_SIZE, ti.f64)
-
-
 @ti.kernel
-def _end_parallel(k: STEP, o: ti.template()) -> REPORT:
+def _end_parallel(k: STEP, o: ti.template()):
     _end(k)
-    return _report(k)
 
 
 @compilation.without_ir_passes(_multigrid)
 @ti.kernel
-def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> REPORT:
+def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64):
     """The whole step ("step"), or its "begin" (up to the right-hand side) or "solve" (the CG) part,
-    in one CPU thread."""
+    in one CPU thread. The report stays in the arrays (ImplicitEuler.report)."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         if ti.static(part != "solve"):
@@ -879,7 +877,6 @@ def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64) -> REPO
         if ti.static(part != "begin"):
             _solve_serial(k, o)
             _end(k)
-    return _report(k)
 
 
 SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (

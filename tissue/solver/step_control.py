@@ -34,9 +34,9 @@ import taichi as ti
 from .. import backend, compilation
 from ..errors import TissueError
 from ..fem.energy import element_energy, element_energy_at_rotations
-from ..launch import replayed
+from ..launch import host_view, replayed
 from .energy_budget import EnergyBudget
-from .implicit_euler import GX, GY, GZ, REPORT_SIZE, STEP, _begin, _end, _multigrid, _report, _solve_serial
+from .implicit_euler import GX, GY, GZ, STEP, _begin, _end, _multigrid, _solve_serial
 
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
 MAX_HALVINGS = 6        # dt / 64 at the finest
@@ -98,10 +98,11 @@ def _evaluate_serial(k: ti.template(), w: ti.template(), rotation: ti.template()
 
 @ti.kernel
 def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.template(), previous: ti.i32,
-            edited: ti.i32, tol: ti.f64) -> ti.types.vector(3, ti.f64):     # not `float`: read at import, before ti.init
+            edited: ti.i32, tol: ti.f64):
     """(kinetic + elastic, the potential of gravity and the applied forces, 1 if the elastic
-    energy was evaluated afresh) at the solver's state; the state is kept in slot 1 − previous
-    and compared with slot `previous` (the elastic energy reused where equal and not `edited`)."""
+    energy was evaluated afresh) at the solver's state, into w.totals[AT_END:]; the state is kept
+    in slot 1 − previous and compared with slot `previous` (the elastic energy reused where equal
+    and not `edited`)."""
     if ti.static(parallel):
         ti.loop_config(serialize=True)
         for _ in range(1):
@@ -121,20 +122,15 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
         ti.loop_config(serialize=True)
         for _ in range(1):
             _evaluate_serial(k, w, rotation, False, previous, edited, AT_END, tol)
-    return ti.Vector([w.totals[AT_END], w.totals[AT_END + 1], w.totals[AT_END + 2]])
-
-
-# The serial step's report, then (kinetic + elastic, potential, fresh) at its start and at its end.
-CHECKED_REPORT = ti.types.vector(REPORT_SIZE + 6, ti.f64)
 
 
 @compilation.without_ir_passes(_multigrid)
 @ti.kernel
 def _checked_serial(k: STEP, o: ti.template(), w: ENERGY_WORK, tol: ti.f64, previous: ti.i32,
-                    edited: ti.i32) -> CHECKED_REPORT:
+                    edited: ti.i32):
     """The serial step (tissue.solver.implicit_euler._serial) with an evaluation at its start, after
-    its rotations, and one at its end: the start's state kept in slot 1 − previous, the end's in
-    slot `previous`."""
+    its rotations, and one at its end (w.totals[AT_START:] and [AT_END:]): the start's state kept in
+    slot 1 − previous, the end's in slot `previous`."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         _begin(k, o, tol)
@@ -142,13 +138,6 @@ def _checked_serial(k: STEP, o: ti.template(), w: ENERGY_WORK, tol: ti.f64, prev
         _solve_serial(k, o)
         _end(k)
         _evaluate_serial(k, w, o.rotation, False, 1 - previous, 0, AT_END, tol)
-    report = _report(k)
-    out = ti.Vector.zero(ti.f64, REPORT_SIZE + 6)
-    for i in ti.static(range(REPORT_SIZE)):
-        out[i] = report[i]
-    for i in ti.static(range(6)):
-        out[REPORT_SIZE + i] = w.totals[AT_START + i]
-    return out
 
 
 ENERGY, CHECKED_SERIAL = replayed(_energy), replayed(_checked_serial)
@@ -168,7 +157,7 @@ class EnergyControl:
         # their own, as elsewhere; the benchmarks' and tests' comparison).
         self.fused = fused
         self.evaluations = 0        # elastic energies evaluated afresh (the others reused)
-        self._work = None
+        self._work = self._totals_view = None
         self._shape = None          # the model's capacities the work is sized for
         self._edits = None          # the model's edit count at the last evaluation
         self._slot = 0              # where the last evaluation kept its state
@@ -184,7 +173,15 @@ class EnergyControl:
             self._work = ENERGY_WORK(per_element=ti.ndarray(real, shape[1]), seen_x=ti.ndarray(vec3, (2, shape[0])),
                                      seen_v=ti.ndarray(vec3, (2, shape[0])), totals=ti.ndarray(real, TOTALS))
             self._shape, self._edits = shape, None
+            self._totals_view = host_view(self._work.totals) if backend.current().arch == "cpu" else None
         return self._work
+
+    def _totals(self) -> np.ndarray:
+        """The evaluations' totals where the launches left them: on the CPU in the array's own
+        memory (a kernel's return costs ~1 µs a value to read)."""
+        if self._totals_view is not None:
+            return self._totals_view
+        return self._work.totals.to_numpy()
 
     def _edited(self) -> int:
         """1 if the model was edited since the last evaluation (its energy not to be reused)."""
@@ -198,11 +195,12 @@ class EnergyControl:
         solver = self.solver
         k = solver._step_pack()
         w = self._work_pack()
-        inner, potential, fresh = ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot,
-                                         self._edited(), solver.fem.rotation_tolerance)
+        ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot, self._edited(),
+               solver.fem.rotation_tolerance)
+        inner, potential, fresh = (float(t) for t in self._totals()[AT_END:AT_END + 3])
         self._slot = 1 - self._slot
         self.evaluations += int(fresh)
-        return float(inner), float(potential)
+        return inner, potential
 
     def _previous_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The state the evaluation before the last one saw (a step's start, after its end)."""
@@ -258,8 +256,8 @@ class EnergyControl:
             return start, self.energy()
         k, o, tol = solver.prepare_step()     # one launch: the evaluations, start and end, in the step's
         with solver.stats.stage("step"):
-            out = CHECKED_SERIAL(k, o, self._work_pack(), tol, self._slot, self._edited())
-        out = [float(c) for c in out]
-        self.evaluations += int(out[REPORT_SIZE + 2]) + int(out[REPORT_SIZE + 5])
-        solver.record_step(out[:REPORT_SIZE])
-        return tuple(out[REPORT_SIZE:REPORT_SIZE + 2]), tuple(out[REPORT_SIZE + 3:REPORT_SIZE + 5])
+            CHECKED_SERIAL(k, o, self._work_pack(), tol, self._slot, self._edited())
+        t = [float(t) for t in self._totals()[AT_START:AT_END + 3]]     # (inner, potential, fresh) twice
+        self.evaluations += int(t[2]) + int(t[5])
+        solver.record_step(solver.report())
+        return (t[0], t[1]), (t[3], t[4])
