@@ -198,21 +198,24 @@ class Simulation:
     def run(self, steps: int | None = None, progress: Callable[[int, int], None] | None = None,
             callback: Callable[["Simulation"], None] | None = None) -> None:
         """`steps` steps (default: the scene's duration / dt); after each, `callback(sim)` and
-        `progress(done, steps)`. The objects alive before the run are frozen first (`gc.freeze`,
-        after a collection of what is garbage already): the collector's full passes, about one
-        in 1,000 steps of the floor scene, walked them all and stopped that step for tens of ms.
-        (Frozen objects that later become cyclic garbage are not freed.)"""
+        `progress(done, steps)`. The objects alive before the run are frozen for its length
+        (`gc.freeze`, after a collection of what is garbage already): the collector's full passes,
+        about one in 1,000 steps of the floor scene, walked them all and stopped that step for
+        tens of ms. They are unfrozen after, so that what becomes garbage later is still freed."""
         steps = self.scene.steps if steps is None else int(steps)
         if steps < 0:
             raise TissueError(f"steps: must be >= 0, got {steps}")
         gc.collect()
         gc.freeze()
-        for i in range(steps):
-            self.step()
-            if callback is not None:
-                callback(self)
-            if progress is not None:
-                progress(i + 1, steps)
+        try:
+            for i in range(steps):
+                self.step()
+                if callback is not None:
+                    callback(self)
+                if progress is not None:
+                    progress(i + 1, steps)
+        finally:
+            gc.unfreeze()
 
     def state(self) -> dict[str, dict[str, np.ndarray]]:
         """{body: {positions, velocities, displacement}} as float64 numpy arrays."""
