@@ -113,15 +113,19 @@ def _polar_rotations(m: MODEL, x: ti.types.ndarray(), v: ti.types.ndarray(), h: 
         out[e] = element_rotation(m, e, start, "polar", tol)
 
 
-# A launch's arrays, in one flat argpack (tissue.solver.implicit_euler says why flat): the FEM's
-# element rotations and gather index, the nodal rotations R, A₀⁻¹ (C0), the touched nodes' blocks
-# of rows in C0 (rows), the step's scratch (hr, U, ht, Qt; r0 and pushed for the correction), the
-# JDS (jds: JaggedDiagonal.packed; value), λ, the solver's x and v, and the step's scalars in two
-# small arrays, `sizes` (SIZES) and `reals` (REALS): every member is an array kept between steps,
-# so the launch is replayed (tissue.launch) whatever the step's sizes.
-WARP_MEMBERS = ("Re", "valence", "incidence", "R", "C0", "rows", "hr", "U", "ht", "Qt", "jds", "value", "lam",
-                "r0", "pushed", "x", "v", "sizes", "reals")
-WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in WARP_MEMBERS})
+# A launch's arrays, in one flat argpack (tissue.solver.implicit_euler says why flat): the nodal
+# rotations R, A₀⁻¹ (C0), the touched nodes' blocks of rows in C0 (rows), Hr, the JDS (jds:
+# JaggedDiagonal.packed; value) and the step's scalars in two small arrays, `sizes` (SIZES) and
+# `reals` (REALS); for the rotations and W (WARP), the FEM's element rotations and gather index and
+# the scratch U, ht, Qt; for the correction (CORRECTION), λ, its scratch r0 and pushed, and the
+# solver's x and v. Each holds only what its kernels read: the launcher costs per ndarray, even
+# replayed. Every member is an array kept between steps, so the launch is replayed
+# (tissue.launch) whatever the step's sizes.
+SHARED_MEMBERS = ("R", "C0", "rows", "hr", "jds", "value", "sizes", "reals")
+WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS, "Re", "valence", "incidence",
+                                                                 "U", "ht", "Qt")})
+CORRECTION = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS, "lam", "r0", "pushed",
+                                                                       "x", "v")})
 WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows")
 WARP_REALS = ("h", "inverse_mass", "tolerance")
 N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS = range(len(WARP_SIZES))
@@ -271,7 +275,7 @@ def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), diagonal: ti.
 
 
 @ti.kernel
-def _correct(k: WARP, serial: ti.template()):
+def _correct(k: CORRECTION, serial: ti.template()):
     """r₀ = (H R)ᵀ λ on the touched dofs and the total impulse p = (H T)ᵀ λ (serial: a fixed
     summation order; p in r₀'s last slot), then per node dx = h (R Q r₀ + p / (c m)) (a gather over
     the touched columns with r₀ ≠ 0, listed in `pushed`), x += dx, v += dx / h."""
@@ -356,7 +360,7 @@ class WarpedCompliance:
         self._own_polar = solver.fem.rotation != "large"     # else its polar rotations: element_rotations
         self.storage = Storage()                              # this step's scratch: see prepare
         self._ready = False
-        self._kept_pack = None
+        self._kept_packs = {}               # the launches' argpacks by kind: see _pack
         # The step's scalars (see WARP), written in place each step.
         self._sizes, self._reals = np.zeros(len(WARP_SIZES), np.int32), np.zeros(len(WARP_REALS), self._np)
         self.follow_edits()
@@ -455,18 +459,25 @@ class WarpedCompliance:
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
 
-    def _pack(self, lam=None):
-        """The launches' argpack (WARP), rebuilt only when one of its arrays was re-allocated (λ
-        written first, for the correction)."""
-        storage, fem = self.storage, self.solver.fem
-        lam = storage.get("lam", 1, self.real) if lam is None else storage.put("lam", lam, self.real)
-        valence, incidence = fem.model.gather_index()
-        arrays = dict(Re=self._element_rotations, valence=valence, incidence=incidence, R=self.R, C0=self.C0,
-                      rows=self.rows, hr=self.hr, U=self.U, ht=self.ht, Qt=self._Qt, jds=self._jds, value=self._value, lam=lam, r0=self.r0,
-                      pushed=self.pushed, x=self.solver.x, v=self.solver.v, sizes=self._scalars[0],
-                      reals=self._scalars[1])
-        self._kept_pack = kept_pack(self._kept_pack, WARP, arrays)
-        return self._kept_pack[0]
+    def _pack(self):
+        """The argpack of the rotations' and W's launches (WARP), rebuilt only when one of its
+        arrays was re-allocated."""
+        valence, incidence = self.solver.fem.model.gather_index()
+        arrays = dict(self._shared(), Re=self._element_rotations, valence=valence, incidence=incidence, U=self.U,
+                      ht=self.ht, Qt=self._Qt)
+        self._kept_packs["warp"] = kept_pack(self._kept_packs.get("warp"), WARP, arrays)
+        return self._kept_packs["warp"][0]
+
+    def _correction_pack(self, lam):
+        """The correction's argpack (CORRECTION), λ written first."""
+        arrays = dict(self._shared(), lam=self.storage.put("lam", lam, self.real), r0=self.r0, pushed=self.pushed,
+                      x=self.solver.x, v=self.solver.v)
+        self._kept_packs["correction"] = kept_pack(self._kept_packs.get("correction"), CORRECTION, arrays)
+        return self._kept_packs["correction"][0]
+
+    def _shared(self) -> dict:
+        return dict(R=self.R, C0=self.C0, rows=self.rows, hr=self.hr, jds=self._jds, value=self._value,
+                    sizes=self._scalars[0], reals=self._scalars[1])
 
     def _read_source(self, touched: np.ndarray) -> np.ndarray:
         """C0 from the cutting compliance followed, and per touched node its block of rows in C0.
@@ -531,11 +542,10 @@ class WarpedCompliance:
         """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's arrays."""
         if not self.jds.n_active:
             return
-        pack = self._pack(lam)
         if not self._ready:
-            _rotate_replayed(pack, self.serial)
+            _rotate_replayed(self._pack(), self.serial)
             self._ready = True
-        _correct_replayed(pack, self.serial)
+        _correct_replayed(self._correction_pack(lam), self.serial)
 
 
 def _whole(W: np.ndarray) -> tuple[np.ndarray, bool]:

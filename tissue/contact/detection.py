@@ -250,11 +250,14 @@ def _cell_range(lo, hi, origin, cell, dims):
 
 
 # The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
-# the start of the step) velocities; the obstacles' primitives and bounding balls; body B's
-# positions, surface, vertex normals and triangle grid (soft–soft).
-DETECT_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds", "xb", "faces",
-                  "surface", "vf_offsets", "vf", "normals", "start", "cursor", "ids", "grid_i", "grid_f")
-DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in DETECT_MEMBERS})
+# the start of the step) velocities, and the obstacles' primitives and bounding balls (RIGID:
+# what the obstacles' launch reads; the launcher costs per ndarray, replayed or not); the soft
+# launch's adds body B's positions, surface, vertex normals and triangle grid.
+RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds")
+SOFT_MEMBERS = (*RIGID_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "normals", "start", "cursor", "ids",
+                "grid_i", "grid_f")
+DETECT_RIGID = ti.types.argpack(**{name: ti.types.ndarray() for name in RIGID_MEMBERS})
+DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in SOFT_MEMBERS})
 
 
 @ti.func
@@ -271,7 +274,7 @@ def _copy_state(det: ti.template(), state: ti.template(), h, copy_state, serial:
 
 
 @ti.kernel
-def _detect_rigid(det: DETECT, poses: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
+def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
                   alarm: float, h: float, copy_state: ti.i32, serial: ti.template()):
     """Body A's contact candidates on the obstacles, in one launch: every (sample, obstacle)
     pair, the nearest of the obstacle's primitives. out[s, o] = [gap, normal (3), closest point
@@ -582,35 +585,41 @@ class Detector:
             return out
         launches = [(others[0] if others else a, self.has_primitives, bool(others))]
         launches += [(b, False, True) for b in others[1:]]
+        own = dict(xa=x, nodes=body.nodes, weights=body.weights, va=x if v is None else v, prm=self._prm,
+                   prm_offsets=self._prm_offsets, prm_bounds=self._prm_bounds, bounds=self._bounds)
         for k, (b, rigid, soft) in enumerate(launches):
-            other = self._bodies[b]
-            slot = no + others.index(b) if soft else 0
-            if other.cell is None:                    # the median triangle extent, at the first call
-                tri = fields_[b].to_numpy().astype(np.float64)[other.faces_np]
-                other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
-            ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
-            while True:
-                pack = self._pack((a, b), xa=x, nodes=body.nodes, weights=body.weights, va=x if v is None else v,
-                                  prm=self._prm, prm_offsets=self._prm_offsets, prm_bounds=self._prm_bounds,
-                                  bounds=self._bounds, xb=fields_[b], faces=other.faces, surface=other.surface,
-                                  vf_offsets=other.vf_offsets, vf=other.vf, normals=other.normals, start=other.start,
-                                  cursor=other.cursor, ids=ids, grid_i=other.grid_i, grid_f=other.grid_f)
-                copy_state = int(v is not None and k == 0)
-                if rigid:
-                    _detect_rigid_replayed(pack, poses, out, state, alarm, dt, copy_state, self.serial)
-                if soft:
-                    _detect_soft_replayed(pack, out, state, other.cell + 2 * alarm, alarm, slot, dt,
-                                          0 if rigid else copy_state, self.serial)
-                needed = int(out[-1, slot, 0]) if soft else 0
-                if needed <= ids.shape[0]:
-                    break
-                ids = self.storage.get(b, needed, ti.i32)      # grow and redo (rare)
+            copy_state = int(v is not None and k == 0)
+            if rigid:
+                _detect_rigid_replayed(self._pack((a, None), DETECT_RIGID, own), poses, out, state, alarm, dt,
+                                       copy_state, self.serial)
+            if soft:
+                self._run_soft(a, b, own, fields_[b], out, state, alarm, no + others.index(b), dt,
+                               0 if rigid else copy_state)
         return out
 
-    def _pack(self, pair, **arrays):
-        """The launch's argpack for the body pair `pair`, rebuilt only when one of its arrays is
-        another object (a grown grid, new bodies): the same pack step after step replays."""
-        kept = self._packs[pair] = kept_pack(self._packs.get(pair), DETECT, arrays)
+    def _run_soft(self, a, b, own, xb, out, state, alarm, slot, dt, copy_state) -> None:
+        """Body a's launch against body b's surface (`own`: body a's arrays of the launch)."""
+        other = self._bodies[b]
+        if other.cell is None:                        # the median triangle extent, at the first call
+            tri = xb.to_numpy().astype(np.float64)[other.faces_np]
+            other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
+        ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
+        while True:
+            pack = self._pack((a, b), DETECT, dict(own, xb=xb, faces=other.faces, surface=other.surface,
+                                                   vf_offsets=other.vf_offsets, vf=other.vf, normals=other.normals,
+                                                   start=other.start, cursor=other.cursor, ids=ids,
+                                                   grid_i=other.grid_i, grid_f=other.grid_f))
+            _detect_soft_replayed(pack, out, state, other.cell + 2 * alarm, alarm, slot, dt, copy_state, self.serial)
+            needed = int(out[-1, slot, 0])
+            if needed <= ids.shape[0]:
+                return
+            ids = self.storage.get(b, needed, ti.i32)          # grow and redo (rare)
+
+    def _pack(self, pair, kind, arrays: dict):
+        """The launch's argpack (`kind`) for the body pair `pair` (b None: the obstacles), rebuilt
+        only when one of its arrays is another object (a grown grid, new bodies): the same pack
+        step after step replays."""
+        kept = self._packs[pair] = kept_pack(self._packs.get(pair), kind, arrays)
         return kept[0]
 
     def _mesh(self, a, x, o, obstacle, pose, out, alarm, moving) -> None:
