@@ -91,37 +91,38 @@ def _rho(diagonal_blocks: np.ndarray) -> np.ndarray:
 def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray, jacobian: bool = True):
     """Φ (n, 3) at reactions r and velocities u (both (n, 3)), and the 3×3 blocks A, B (n, 3, 3) of
     its generalised Jacobian dΦ = A dr + B du (du = W dr). At the kinks the one-sided choice
-    is the branch the strict inequality names (a valid element of the generalised Jacobian)."""
-    n = len(mu)
-    rn_t = r[:, 0] - rho * u[:, 0]
-    rt_t = r[:, 1:] - rho[:, None] * u[:, 1:]
-    closing = rn_t > 0
-    radius = mu * np.maximum(rn_t, 0.0)
-    nt = np.linalg.norm(rt_t, axis=1)
+    is the branch the strict inequality names (a valid element of the generalised Jacobian).
+    Whole-array operations, no boolean-indexed assignments: the line search calls it a few times
+    a Newton step on ~100 contacts, where each numpy call's overhead is most of its cost."""
+    tilde = r - rho[:, None] * u                        # (r̃_n, r̃_t)
+    closing = tilde[:, 0] > 0
+    pressed = np.maximum(tilde[:, 0], 0.0)
+    radius = mu * pressed
+    rt_t = tilde[:, 1:]
+    nt = np.sqrt(np.add.reduce(rt_t * rt_t, axis=1))    # |r̃_t| (as np.linalg.norm)
     stick = closing & (nt <= radius)
     slide = ~stick
-    phi = np.empty((n, 3))
-    phi[:, 0] = r[:, 0] - np.maximum(rn_t, 0.0)
     e = np.divide(rt_t, nt[:, None], out=np.zeros_like(rt_t), where=nt[:, None] > 0)
-    phi[:, 1:] = np.where(stick[:, None], r[:, 1:] - rt_t, r[:, 1:] - radius[:, None] * e)
+    projected = np.empty_like(tilde)                    # (max(0, r̃_n), P_disk(r̃_t))
+    projected[:, 0] = pressed
+    projected[:, 1:] = np.where(stick[:, None], rt_t, radius[:, None] * e)
+    phi = r - projected
     if not jacobian:
         return phi, None, None
+    n = len(mu)
     A, B = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
     # Normal row: Φ_n = ρ u_n when closing, else r_n.
-    A[~closing, 0, 0] = 1.0
-    B[closing, 0, 0] = rho[closing]
-    # Sticking: Φ_t = ρ u_t.
-    B[stick, 1, 1] = B[stick, 2, 2] = rho[stick]
-    # Sliding: Φ_t = r_t - R e, R = μ max(0, r̃_n), e = r̃_t / |r̃_t|:
+    A[:, 0, 0] = ~closing
+    B[:, 0, 0] = np.where(closing, rho, 0.0)
+    # Sticking: Φ_t = ρ u_t. Sliding: Φ_t = r_t - R e, R = μ max(0, r̃_n), e = r̃_t / |r̃_t|:
     #   dΦ_t = dr_t - e dR - (R / |r̃_t|) (I - e eᵀ) dr̃_t, dR = μ (dr_n - ρ du_n) when closing.
-    s = np.flatnonzero(slide)
-    es, ks = e[s], np.divide(radius[s], nt[s], out=np.zeros(len(s)), where=nt[s] > 0)
-    G = ks[:, None, None] * (np.eye(2) - es[:, :, None] * es[:, None, :])     # (R / |r̃_t|)(I - e eᵀ)
-    A[s, 1:, 1:] = np.eye(2) - G
-    B[s, 1:, 1:] = rho[s, None, None] * G
-    c = closing[s]
-    A[s[c], 1:, 0] = -mu[s[c], None] * es[c]
-    B[s[c], 1:, 0] = (mu[s[c]] * rho[s[c]])[:, None] * es[c]
+    k = np.divide(radius, nt, out=np.zeros(n), where=slide & (nt > 0))
+    G = k[:, None, None] * (np.eye(2) - e[:, :, None] * e[:, None, :])     # (R / |r̃_t|)(I - e eᵀ)
+    A[:, 1:, 1:] = np.where(slide[:, None, None], np.eye(2) - G, 0.0)
+    B[:, 1:, 1:] = np.where(slide[:, None, None], rho[:, None, None] * G, np.where(stick[:, None, None], rho[:, None, None] * np.eye(2), 0.0))
+    pushing = (slide & closing)[:, None]
+    A[:, 1:, 0] = np.where(pushing, -mu[:, None] * e, 0.0)
+    B[:, 1:, 0] = np.where(pushing, (mu * rho)[:, None] * e, 0.0)
     return phi, A, B
 
 
