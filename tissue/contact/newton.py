@@ -206,16 +206,30 @@ def _factor_solve(J, b, tol=REFINED):
     float64 outright where the refinement does not get there (J too ill-conditioned for float32;
     no factor returned then). J may be overwritten."""
     if len(b) >= SINGLE_ROWS:
-        lu = scipy.linalg.lu_factor(J.astype(np.float32), overwrite_a=True, check_finite=False)
+        lu = _lu(J.astype(np.float32))
         x = np.zeros_like(b)
         residual = b
         for _ in range(REFINEMENTS):
-            x += scipy.linalg.lu_solve(lu, residual.astype(np.float32), check_finite=False)
+            x += _lu_apply(lu, residual.astype(np.float32))
             residual = b - J @ x
             if np.linalg.norm(residual) <= max(tol, REFINED) * np.linalg.norm(b):
                 return x, lu
-    return scipy.linalg.lu_solve(scipy.linalg.lu_factor(J, overwrite_a=True, check_finite=False), b,
-                                 check_finite=False), None
+    return _lu_apply(_lu(J), b), None
+
+
+def _lu(J):
+    """LAPACK's LU of J (float32 or float64; overwritten) as (lu, pivots), getrf called outright:
+    scipy.linalg.lu_factor and lu_solve call the same getrf and getrs (the same bits) through
+    wrappers that cost more than factorising liver_press's ~36-row systems."""
+    getrf = scipy.linalg.lapack.sgetrf if J.dtype == np.float32 else scipy.linalg.lapack.dgetrf
+    lu, pivots, _ = getrf(J, overwrite_a=True)
+    return lu, pivots
+
+
+def _lu_apply(lu, b):
+    """J⁻¹ b from _lu's (lu, pivots) of J, in their precision (getrs)."""
+    getrs = scipy.linalg.lapack.sgetrs if lu[0].dtype == np.float32 else scipy.linalg.lapack.dgetrs
+    return getrs(*lu, b)[0]
 
 
 def _preconditioner(J, lu, before, act):
@@ -224,7 +238,7 @@ def _preconditioner(J, lu, before, act):
     contacts in both (zero on those no longer closing), the inverse of J's 3×3 diagonal block on
     those closing since."""
     def solve(v):
-        return scipy.linalg.lu_solve(lu, v.astype(np.float32), check_finite=False)
+        return _lu_apply(lu, v.astype(np.float32))
 
     if np.array_equal(before, act):
         return solve
