@@ -83,6 +83,9 @@ JACOBI_ITERATIONS = 100  # ... and where no LU serves: GMRES preconditioned by J
 FORCING = (1e-3, 0.1)    # ... to a relative residual 0.9 (|Φ_k| / |Φ_k-1|)² clipped to this (Eisenstat-Walker)
 
 
+_I2 = np.eye(2)
+
+
 def _rho(diagonal_blocks: np.ndarray) -> np.ndarray:
     """ρ per contact: 3 / tr W_ii (the Alart–Curnier augmentation, on W's scale)."""
     return 3.0 / np.trace(diagonal_blocks, axis1=1, axis2=2)
@@ -117,9 +120,9 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
     # Sticking: Φ_t = ρ u_t. Sliding: Φ_t = r_t - R e, R = μ max(0, r̃_n), e = r̃_t / |r̃_t|:
     #   dΦ_t = dr_t - e dR - (R / |r̃_t|) (I - e eᵀ) dr̃_t, dR = μ (dr_n - ρ du_n) when closing.
     k = np.divide(radius, nt, out=np.zeros(n), where=slide & (nt > 0))
-    G = k[:, None, None] * (np.eye(2) - e[:, :, None] * e[:, None, :])     # (R / |r̃_t|)(I - e eᵀ)
-    A[:, 1:, 1:] = np.where(slide[:, None, None], np.eye(2) - G, 0.0)
-    B[:, 1:, 1:] = np.where(slide[:, None, None], rho[:, None, None] * G, np.where(stick[:, None, None], rho[:, None, None] * np.eye(2), 0.0))
+    G = k[:, None, None] * (_I2 - e[:, :, None] * e[:, None, :])     # (R / |r̃_t|)(I - e eᵀ)
+    A[:, 1:, 1:] = np.where(slide[:, None, None], _I2 - G, 0.0)
+    B[:, 1:, 1:] = rho[:, None, None] * np.where(slide[:, None, None], G, _I2)
     pushing = (slide & closing)[:, None]
     A[:, 1:, 0] = np.where(pushing, -mu[:, None] * e, 0.0)
     B[:, 1:, 0] = np.where(pushing, (mu * rho)[:, None] * e, 0.0)
