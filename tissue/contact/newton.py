@@ -134,7 +134,7 @@ class _Shared:
     once while they stay the same (on the press plate's 2,166 closing rows a slice of W costs a
     third of the LU; the line search rarely changes which contacts close), W between them and the
     separating contacts still pushing (`carry`: after a step the line search cut, the same ones
-    again; from W's factors a block costs a millisecond or two on liver_press), and the last float32
+    again; a block formed from W's factors is a Newton step's largest host cost on liver_press), and the last float32
     LU of a Newton system with each contact's state then (0 separating, 1 sticking, 2 sliding;
     see newton_step)."""
 
