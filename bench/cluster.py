@@ -50,15 +50,23 @@ def client(args):
 
 
 def run_cells(c, function, cells: list[dict], label: str = "cells") -> list[dict]:
-    """Submit every cell as its own task; return the results in the order of `cells`."""
+    """Submit every cell as its own task; return the results in the order of `cells`, printing
+    the progress as they finish (about every twentieth of the sweep)."""
+    from dask.distributed import as_completed
+
     start = time.perf_counter()
     futures = c.map(function, cells, pure=False)
-    out = []
-    for cell, future in zip(cells, futures):
+    position = {future.key: i for i, future in enumerate(futures)}
+    out: list[dict | None] = [None] * len(cells)
+    every = max(1, len(cells) // 20)
+    for done, future in enumerate(as_completed(futures), 1):
+        i = position[future.key]
         try:
-            out.append(future.result())
+            out[i] = future.result()
         except Exception as e:  # a crash of one cell is that cell's result, not the sweep's end
-            out.append({**cell, "error": f"{type(e).__name__}: {e}"})
+            out[i] = {**cells[i], "error": f"{type(e).__name__}: {e}"}
+        if done % every == 0 and done < len(cells):
+            print(f"{label}: {done} of {len(cells)} tasks done, {time.perf_counter() - start:.0f} s", flush=True)
     print(f"{label}: {len(cells)} tasks in {time.perf_counter() - start:.1f} s", flush=True)
     return out
 

@@ -378,3 +378,27 @@ def test_obstacle_work_of_a_rising_floor(backend):
     rise = (solver.model.mass @ (solver.positions() - mesh.points))[2] / mass
     assert rise == pytest.approx(lift, rel=0.05)
     assert work == pytest.approx(mass * 9.81 * lift + 0.5 * mass * u * u, rel=0.02)
+
+
+def _square_unless_three(cell):
+    if cell["i"] == 3:
+        raise ValueError("cell three fails")
+    return {**cell, "square": cell["i"] ** 2}
+
+
+def test_sweep_keeps_the_cells_order_records_a_crash_and_shows_progress(capsys):
+    """bench.cluster.run_cells: results in the order of the cells whatever order they finish in,
+    a cell that raises is that cell's error (not the sweep's end), and progress is printed."""
+    from dask.distributed import Client, LocalCluster
+
+    from bench.cluster import run_cells
+
+    cells = [{"i": i} for i in range(30)]
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        out = run_cells(client, _square_unless_three, cells, "sweep")
+    assert [r["i"] for r in out] == list(range(30))
+    assert out[3]["error"] == "ValueError: cell three fails"
+    assert all(r["square"] == r["i"] ** 2 for r in out if r["i"] != 3)
+    printed = capsys.readouterr().out
+    assert "sweep: 15 of 30 tasks done" in printed and "sweep: 30 tasks in" in printed
