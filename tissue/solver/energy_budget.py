@@ -80,7 +80,7 @@ class EnergyBudget:
         kinetic = self._kinetic(v)
         removed, unresolved = excess, 0
         if kinetic < excess:
-            x, v, excess, unresolved = self._back_along_step(x, v, excess)
+            x, v, excess, unresolved = self._back_along_step(x, v, kinetic, excess)
             kinetic = self._kinetic(v)
         if excess > 0.0 and kinetic > 0.0:
             v = v * np.sqrt(max(0.0, 1.0 - excess / kinetic))
@@ -90,13 +90,13 @@ class EnergyBudget:
     def _kinetic(self, v) -> float:
         return 0.5 * float(self.solver.model.mass @ (v * v).sum(1))
 
-    def _back_along_step(self, x, v, excess):
+    def _back_along_step(self, x, v, kinetic, excess):
         """(x, v, excess, unresolved) at an s with U(x₀ + s (x − x₀)) within the budget (U = E − K,
+        K = `kinetic` at the end,
         the energy less the kinetic, which s² K keeps) by at most PRECISION of `excess` (the end's,
         s = 1), so that at most (1 + PRECISION) times the excess is removed; the excess left there
         goes to the kinetic energy."""
         solver, (x0, v0) = self.solver, self._start
-        kinetic = self._kinetic(v)
 
         def over(s):    # U − the budget at s (evaluated at rest: U is the energy there)
             solver.set_state(x0 + s * (x - x0))

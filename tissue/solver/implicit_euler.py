@@ -656,9 +656,13 @@ def _begin(k: ti.template(), o: ti.template(), tol):
                     A = ti.Matrix.identity(float, 3)
                 k.block_inverse[v] = A.inverse()
             k.dv[v] = _guess(k, v)
-            products = _set_residual(k, o, v, rhs)
-            rz += products[0]
-            rr += products[1]
+            if k.parameters[WARM_START] != 0:   # CG starts from b − A dv: _warm_start preconditions it
+                k.r[v] = rhs
+                rr += rhs.dot(rhs)
+            else:
+                products = _set_residual(k, o, v, rhs)
+                rz += products[0]
+                rr += products[1]
         k.partial[0, b] = rz
         k.partial[1, b] = rr
         k.partial[2, b] = rr     # ‖b‖²: the stopping rule's scale
