@@ -1,6 +1,6 @@
 """The contact step of this checkout against another commit, measured alternately in one session.
 
-    python -m bench.contact_versus [--other 65424df] [--rounds 3] [--out contact_versus]
+    python -m bench.contact_versus [--other 65424df] [--rounds 3] [--out contact_versus] [--scenes liver_floor ...]
 
 This shared machine's speed drifts by tens of percent within an hour, so contact steps of two
 commits are compared side by side: subprocesses of each checkout alternate, round after round, each
@@ -82,12 +82,13 @@ def settled(sim, steps):
         sim.step()
     return sim
 
-out = {"liver_press": measured(bc.press("warped"), 80, 150),
-       "liver_press_450_rows": measured(bc.press("warped", [f"contact.distance={bc.WIDE_DISTANCE}"]), 72, 420),
-       "liver_floor": measured(bc.floor_scene("warped"), 80, 30),
-       "liver_floor_settled": measured(settled(bc.floor_scene("warped"), 400), 80, 30),
-       "liver_floor_no_step_control": measured(bc.floor_scene("warped", "none"), 80, 30),
-       "liver_floor_exact": measured(bc.floor_scene("exact"), 80, 30)}
+runs = {"liver_press": lambda: measured(bc.press("warped"), 80, 150),
+        "liver_press_450_rows": lambda: measured(bc.press("warped", [f"contact.distance={bc.WIDE_DISTANCE}"]), 72, 420),
+        "liver_floor": lambda: measured(bc.floor_scene("warped"), 80, 30),
+        "liver_floor_settled": lambda: measured(settled(bc.floor_scene("warped"), 400), 80, 30),
+        "liver_floor_no_step_control": lambda: measured(bc.floor_scene("warped", "none"), 80, 30),
+        "liver_floor_exact": lambda: measured(bc.floor_scene("exact"), 80, 30)}
+out = {scene: runs[scene]() for scene in os.environ["TISSUE_BENCH_SCENES"].split()}
 print("RESULT " + json.dumps(out))
 """
 SCENES = ("liver_press", "liver_press_450_rows", "liver_floor", "liver_floor_settled", "liver_floor_no_step_control",
@@ -95,8 +96,9 @@ SCENES = ("liver_press", "liver_press_450_rows", "liver_floor", "liver_floor_set
 COLUMNS = ("free_motion", "detection", "constraints", "compliance", "lcp", "correction", "contact", "total")
 
 
-def measure(checkout: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout), TISSUE_BENCH_CONTACT=str(Path(__file__).resolve().with_name("contact.py")))
+def measure(checkout: Path, scenes=SCENES) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout), TISSUE_BENCH_CONTACT=str(Path(__file__).resolve().with_name("contact.py")),
+               TISSUE_BENCH_SCENES=" ".join(scenes))
     done = subprocess.run([sys.executable, "-c", CHILD], cwd=checkout, env=env, capture_output=True, text=True)
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
     if done.returncode != 0 or not lines:
@@ -104,10 +106,10 @@ def measure(checkout: Path) -> dict:
     return json.loads(lines[0][len("RESULT "):])
 
 
-def summary(runs: list[dict]) -> dict:
+def summary(runs: list[dict], scenes=SCENES) -> dict:
     """Per scene: the median over rounds of each column, launches and rows; the worst residual."""
     out = {}
-    for scene in SCENES:
+    for scene in scenes:
         r = [run[scene] for run in runs]
         entry = {"ms_per_step": {c: float(np.median([x["ms_per_step"][c] for x in r])) for c in COLUMNS},
                  "cpu_ms_per_step": float(np.median([x["cpu_ms_per_step"] for x in r])),
@@ -132,7 +134,9 @@ def main(argv=None) -> None:
                         "the contact step's replayed launches)")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", default="contact_versus", help="the results' name under bench/results")
+    parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES), help="measure only these (default: all)")
     args = parser.parse_args(argv)
+    scenes = [scene for scene in SCENES if scene in args.scenes]
 
     from tissue import backend
 
@@ -140,10 +144,10 @@ def main(argv=None) -> None:
     info = machine()
     print_machine(info)
     other, runs = alternate_with_commit(
-        args.other, args.rounds, measure,
-        lambda run: "  ".join(f"{s}: {run[s]['ms_per_step']['total']:.2f} ms" for s in SCENES),
+        args.other, args.rounds, lambda checkout: measure(checkout, scenes),
+        lambda run: "  ".join(f"{s}: {run[s]['ms_per_step']['total']:.2f} ms" for s in scenes),
         "tissue-contact-versus-")
-    result = {"this": summary(runs["this"]), "other": summary(runs["other"])}
+    result = {"this": summary(runs["this"], scenes), "other": summary(runs["other"], scenes)}
     result["this_over_other"] = {scene: {"total": result["this"][scene]["ms_per_step"]["total"]
                                          / result["other"][scene]["ms_per_step"]["total"],
                                          "cpu": result["this"][scene]["cpu_ms_per_step"]
@@ -151,8 +155,8 @@ def main(argv=None) -> None:
                                          "cpu_min": result["this"][scene]["cpu_ms_per_step_min"]
                                          / result["other"][scene]["cpu_ms_per_step_min"],
                                          "cpu_mean": result["this"][scene]["cpu_ms_per_step_mean"]
-                                         / result["other"][scene]["cpu_ms_per_step_mean"]} for scene in SCENES}
-    for scene in SCENES:
+                                         / result["other"][scene]["cpu_ms_per_step_mean"]} for scene in scenes}
+    for scene in scenes:
         print(f"\n{scene} (rows median {result['this'][scene]['rows_median']:.0f}), ms/step:")
         print(f"{'':<8}" + "".join(f"{c:>13}" for c in COLUMNS) + f"{'CPU ms':>10}{'CPU min':>10}{'CPU mean':>10}"
               f"{'launches':>10}{'numpy args':>11}")
