@@ -89,7 +89,7 @@ from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 from .storage import Storage
 
-SERIAL_BELOW = 10_000    # nodes: below, the CPU runs the compliance loops on one thread
+SERIAL_BELOW_NODES = 10_000    # nodes: below, the CPU runs the compliance loops on one thread
 
 
 @ti.kernel
@@ -399,7 +399,7 @@ class WarpedCompliance:
             self.pushed = ti.ndarray(ti.i32, capacity + 1)                       # touched nodes with r₀ ≠ 0, + their count
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
         # costs more than it saves at a few hundred rows on 2 cores); parallel above.
-        self.serial = backend.current().arch == "cpu" and n < SERIAL_BELOW
+        self.serial = backend.current().arch == "cpu" and n < SERIAL_BELOW_NODES
 
     def follow(self, compliance) -> None:
         """Read A₀⁻¹ from a tissue.cutting.CuttingCompliance of this body (the same rest matrix:

@@ -52,7 +52,13 @@ from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
 SAMPLINGS = ("vertices", "edges", "faces")
-SERIAL_BELOW = 30_000      # contact points: below, the CPU runs the detection loops on one thread
+SERIAL_BELOW_POINTS = 30_000      # contact points: below, the CPU runs the detection loops on one thread
+
+
+def _serial(samples) -> bool:
+    """Small problems run each loop on one thread on the CPU: dispatching a few hundred iterations
+    to the thread pool costs more than it saves."""
+    return backend.current().arch == "cpu" and sum(len(nodes) for nodes, _ in samples) < SERIAL_BELOW_POINTS
 
 
 def surface_samples(faces: np.ndarray, sampling: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
@@ -513,9 +519,7 @@ class Detector:
         self._bodies = None
         self.state, self._no_state = None, np.zeros((1, 6))
         self.storage = Storage()                  # per body, the ids of its triangle grid's cells
-        # Small problems run each loop on one thread on the CPU: dispatching a few hundred
-        # iterations to the thread pool costs more than it saves (on 2 cores, measured 2x).
-        self.serial = be.arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
+        self.serial = _serial(self.samples)
 
     def set_surface(self, body: int, faces) -> None:
         """Replace a body's surface triangles (after a topology edit); its samples follow."""
@@ -524,7 +528,7 @@ class Detector:
         self.samples[body] = (nodes, weights.astype(self._np))
         self._bodies = None
         self._kept_hits.pop(body, None)
-        self.serial = backend.current().arch == "cpu" and sum(len(n) for n, _ in self.samples) < SERIAL_BELOW
+        self.serial = _serial(self.samples)
 
     def _field(self, body, positions):
         """A Taichi ndarray for numpy positions (one per body, reused); a solver's `x` as it is."""

@@ -44,7 +44,7 @@ EXECUTIONS = ("auto", "serial", "parallel")
 OPERATORS = ("assembled", "matrix_free")
 # On the CPU a single thread beats two below this many elements: each parallel loop costs a
 # thread-pool dispatch, and a CG iteration has five of them (bench/deformation.py measures it).
-SERIAL_BELOW = 30_000
+SERIAL_BELOW_ELEMENTS = 30_000
 
 # Scalar slots of the CG state kept on the device (LAST_DT: the dt of the last solve, its dv's).
 DELTA, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE, LAST_DT = range(12)
@@ -175,7 +175,7 @@ class ImplicitEuler:
             raise TissueError(f"execution: 'serial' runs the CG in one CPU thread; on {be.arch} use "
                               "'parallel' or 'auto'")
         if execution == "auto":
-            execution = "serial" if (be.arch == "cpu" and fem.n_elements < SERIAL_BELOW) else "parallel"
+            execution = "serial" if (be.arch == "cpu" and fem.n_elements < SERIAL_BELOW_ELEMENTS) else "parallel"
         self.fem, self.model = fem, fem.model
         self.execution, self.unroll, self.operator = execution, unroll, operator
         # The serial path runs a step in one launch; split_stages times its two parts apart
