@@ -35,7 +35,7 @@ from .. import backend, compilation
 from ..errors import TissueError
 from ..fem.energy import element_energy, element_energy_at_rotations
 from ..launch import host_view, replayed
-from .energy_budget import EnergyBudget
+from .energy_budget import EnergyBudget, solve_residual
 from .implicit_euler import GX, GY, GZ, STEP, _begin, _end, _multigrid, _solve_serial
 
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
@@ -162,6 +162,7 @@ class EnergyControl:
         self._edits = None          # the model's edit count at the last evaluation
         self._slot = 0              # where the last evaluation kept its state
         self._first_start = None    # (kinetic + elastic, potential) at the current step's start
+        self._solves = []           # the budget's measures of the current step's kept solves
         self.budget = EnergyBudget(self) if budget else None     # its step's end projected onto it
 
     def _work_pack(self):
@@ -215,7 +216,7 @@ class EnergyControl:
         # The budget opens on the step's start: its state kept now, its energy the first
         # evaluation's (in the step's own launch where fused).
         start_state = (solver.positions(), solver.velocities()) if self.budget else None
-        self._first_start = None
+        self._first_start, self._solves = None, []
         try:
             end = self._advance(None, dt, 0, rejections)
         finally:
@@ -223,7 +224,7 @@ class EnergyControl:
                 solver.set_parameters(dt=dt)
         solver.stats.count(energy_rejections=rejections[0], energy_unresolved=rejections[1])
         if self.budget:
-            self.budget.open(self._first_start, start_state)
+            self.budget.open(self._first_start, start_state, self._solves)
             self.budget.close(end)
 
     def _advance(self, start, dt, depth, rejections):
@@ -236,10 +237,11 @@ class EnergyControl:
         if self._first_start is None:
             self._first_start = start
         gain = (end[0] + end[1]) - (start[0] + start[1])
-        if gain <= self.tolerance * max(start[0], end[0]):
-            return end
-        if depth == self.max_halvings:
-            rejections[1] += 1
+        within = gain <= self.tolerance * max(start[0], end[0])
+        if within or depth == self.max_halvings:     # kept (counted where still gaining)
+            rejections[1] += int(not within)
+            if self.budget:
+                self._solves.append(solve_residual(solver))
             return end
         rejections[0] += 1
         solver.set_state(*self._previous_state())
