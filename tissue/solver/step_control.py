@@ -13,7 +13,8 @@ forces over the step. If it rose by more than `tolerance` of the energy in play,
 undone and taken as two steps of dt/2, each checked the same way, down to dt / 2^max_halvings; a
 step still gaining energy there is kept, and counted (`energy_unresolved` in the solver's stats).
 The stats also count the step's rejections (`energy_rejections`). With `budget`, the step's end
-is then held to its start's energy plus the work done on it (tissue.solver.energy_budget).
+is then held to its start's energy plus the work done on it, plus the allowance its solves' own
+error earns (tissue.solver.energy_budget: the CG residuals the kept solves leave are measured here).
 
 The energy is evaluated on the device over the solver's arrays (nothing copied to the host): per
 element from its polar rotation, or its stretches where Newton–Schulz does not find the rotation
