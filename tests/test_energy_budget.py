@@ -1,8 +1,11 @@
 """The energy budget (tissue.solver.energy_budget): every step of a "large" twist that gains
-energy without it ends within its start's energy with it; a body whose steps lose energy is not
-touched (bit for bit); and a projection removes exactly the excess, from the kinetic energy when
-it holds it, else back along the step. Energies are measured here in numpy (tissue.fem.energy's
-reference), not by the budget's kernel."""
+energy without it ends within its start's energy plus the room of its allowance with it; a body
+whose steps lose energy is not touched (bit for bit); a projection removes exactly the excess,
+from the kinetic energy when it holds it, else back along the step; a body at rest on the floor is
+no longer held (its steps' solver error allowed), a gain beyond the allowance still projected,
+and accepted gains do not add up (the ledger). Energies are measured here in numpy
+(tissue.fem.energy's reference), not by the budget's kernel; the CG residual the allowance uses
+against scipy's assembled system."""
 
 import numpy as np
 import pytest
@@ -285,9 +288,9 @@ def test_a_body_at_rest_on_the_floor_is_not_held(backend):
     80 more steps with the budget in one and without it in the other (the energy check in both): a
     step counts as projected when a close changed its state. Before the allowance nearly every
     settled step was projected back to its start (the liver held where it rested: 73 of the steps
-    400-480 at 2812207, 228 of 80-400); now none of these is, so each is the step without the budget, bit for bit,
-    the liver keeps moving (it is not held), and no step's energy rises by more than the room its
-    allowance left (min(a, ceiling − D))."""
+    400-480 at 2812207, 228 of 80-400); now none of these is, so each is the step without the
+    budget, bit for bit, the liver keeps moving (it is not held), and no step's energy rises by
+    more than the room its allowance left (min(a, ceiling − D))."""
     from bench.contact import floor_scene
 
     runs = {}
@@ -302,7 +305,8 @@ def test_a_body_at_rest_on_the_floor_is_not_held(backend):
     ledger_open = np.r_[before["ledger"][-1], run["ledger"][:-1]]
     room = np.maximum(0.0, np.minimum(run["allowance"], run["ceiling"] - ledger_open))
     moved = np.abs(np.diff(np.r_[before["x"][-1:], run["x"]], axis=0)).max(axis=(1, 2))
-    print(f"settled: {int(run['projected'].sum())} of 80 steps projected, allowance {np.median(run['allowance']):.2e} J (median), "
+    print(f"settled: {int(run['projected'].sum())} of 80 steps projected, "
+          f"allowance {np.median(run['allowance']):.2e} J (median), "
           f"gains up to {gains.max():.2e} J, motion per step {np.median(moved):.1e} m (median)")
     assert run["projected"].sum() == 0
     assert np.array_equal(run["x"], runs[False][1]["x"])
@@ -390,7 +394,8 @@ def test_accepted_gains_do_not_add_up(backend, ledger):
                 control.budget.ledger = 0.0
             control.step()
             kinetic = 0.5 * M * solver.velocities()[0, 0] ** 2
-            solver.set_state(velocities=np.tile([np.sqrt(2 * (kinetic + put_in) / M), 0.0, 0.0], (solver.model.n_nodes, 1)))
+            speed = np.sqrt(2 * (kinetic + put_in) / M)
+            solver.set_state(velocities=np.tile([speed, 0.0, 0.0], (solver.model.n_nodes, 1)))
             control.budget.add_allowance(allowed)
             control.budget.close()
             E.append(energy(solver))

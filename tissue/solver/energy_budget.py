@@ -21,9 +21,10 @@ where it is over, projects the state back onto the budget:
 
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
 rest (`budget_unresolved`). The solver's stats count `budget_projections` (closes that changed the
-state), `budget_removed` (J), `budget_allowance` (a, J) and `budget_ledger` (D after it, J). Costs: a copy of x and v at each step's
-start, reads of r, x and v (host views on the CPU), and, per projected step, a velocity write (and
-the search's energy launches when the kinetic energy cannot absorb it).
+state), `budget_removed` (J), `budget_allowance` (a, J) and `budget_ledger` (D after it, J).
+Costs: a copy of x and v at each step's start, reads of r, x and v (host views on the CPU), and,
+per projected step, a velocity write (and the search's energy launches when the kinetic energy
+cannot absorb it).
 
 The allowance. Implicit Euler on its linearised model (A dv = b, tissue.solver.implicit_euler)
 loses energy exactly: with the step's extra impulses s (what A dv − b is beyond the forces),
@@ -37,11 +38,12 @@ v₁ · s = 2-3.5e-9 J a step, the dissipation 0.8-2.5e-9, N 1e-14: the step end
 Its parts, each bounded by what the step knows:
 
   - CG's residual r = b − A dv (`ImplicitEuler.residual`) is an impulse −r the solve left
-    unbalanced; its work −r · v₁ ≤ ‖M^-½ r‖ ‖M^½ v₁‖ (Cauchy–Schwarz in the mass norm, ‖M^½ v‖ =
-    √(2K)). Over a step of several solves (the energy check's halves) each residual works on the
-    velocity at its solve's end, the last one's on the step's end (after the contact correction).
-    The solves' ρ = ‖M^-½ r‖ come with `open`, `solve_residual` measures them. A capped CG
-    (SOFA's 25 iterations, ‖r‖/‖b‖ ~ 0.1 at rest on the floor) is most of it there.
+    unbalanced, whose work is −r · v, v the velocity at the solve's end: the step's end (after the
+    contact correction) for its last solve, the half step's for the energy check's earlier halves
+    (`solve_residual`, with `open`). Their sum is computed, not bounded: through norms,
+    ‖M^-½ r‖ ‖M^½ v‖, it was 10× the sum on the abrupt twist (3.8e-4 of its energy a step, at CG's
+    1e-3). A capped CG (SOFA's 25 iterations, ‖r‖/‖b‖ ~ 0.13 at rest on the floor) is about half
+    of v₁ · s there.
   - The contact reactions λ (impulses) do the work λ · H v₁ = Σ λᵢ · (δᵢ(end) − δᵢ(start)) / h;
     exact reactions do none where their contact touches at both ends (complementarity) and only
     lose where they slide (Coulomb's law). The solver meets each contact's constraints to within
@@ -66,8 +68,6 @@ gaining and losing by turns, keeps its room; a steady gain is stopped once D mee
 the first steps of a run restarted from a state with cold warm starts, left D above the settled
 steps' allowances, and the liver on the floor was held again until losses paid it back.)
 """
-
-import math
 
 import numpy as np
 
@@ -159,14 +159,14 @@ class EnergyBudget:
             return
         x, v = solver.positions(), solver.velocities()
         kinetic = self._kinetic(v)
-        removed, unresolved, left = excess, 0, budget
+        removed, unresolved, ends_with = excess, 0, budget
         if kinetic < excess:
-            x, v, excess, unresolved, left = self._back_along_step(x, v, kinetic, excess, budget)
+            x, v, excess, unresolved, ends_with = self._back_along_step(x, v, kinetic, excess, budget)
             kinetic = self._kinetic(v)
         if excess > 0.0 and kinetic > 0.0:
             v = v * np.sqrt(max(0.0, 1.0 - excess / kinetic))
         solver.set_state(x, v)      # not evaluated: the next evaluation, if any, finds it changed
-        self.ledger = max(0.0, self._ledger_open + left - self.allowed)
+        self.ledger = max(0.0, self._ledger_open + ends_with - self.allowed)
         solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved,
                            budget_allowance=allowance, budget_ledger=self.ledger)
 
