@@ -350,7 +350,7 @@ def test_the_budget_still_projects_a_gain_beyond_the_allowance(backend):
     def lifted_close(self, end=None):       # the lift goes in just before the contact close
         if end is None:
             inner, potential = self.control.energy()
-            seen["left"], seen["start"] = self.room(self.allowance(inner)), self._start_energy
+            seen["left"], seen["start"] = self.room(self.allowance()), self._start_energy
             x = solver.positions()          # to end at start + factor × room: m g dz more or less
             x[:, 2] += (seen["start"] + seen["factor"] * seen["left"] - inner - potential) / (mass.sum() * g)
             solver.set_state(x)

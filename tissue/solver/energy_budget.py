@@ -22,9 +22,9 @@ where it is over, projects the state back onto the budget:
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
 rest (`budget_unresolved`). The solver's stats count `budget_projections` (closes that changed the
 state), `budget_removed` (J), `budget_allowance` (a, J) and `budget_ledger` (D after it, J).
-Costs: a copy of x and v at each step's start, reads of r, x and v (host views on the CPU), and,
-per projected step, a velocity write (and the search's energy launches when the kinetic energy
-cannot absorb it).
+Costs: a copy of x and v at each step's start, a read of r and two of v (host views on the CPU),
+and, per projected step, a velocity write (and the search's energy launches when the kinetic
+energy cannot absorb it).
 
 The allowance. Implicit Euler on its linearised model (A dv = b, tissue.solver.implicit_euler)
 loses energy exactly: with the step's extra impulses s (what A dv − b is beyond the forces),
@@ -56,7 +56,8 @@ Its parts, each bounded by what the step knows:
     on its floor (2.3× the contact part), which stays projected (docs/stability.md).
   - Rounding: E is a fixed-order sum of n terms (each node's kinetic and potential energy, each
     element's elastic energy), each good to a few ε of itself, the sum to (n − 1) ε Σ|terms|
-    (Higham); at both ends of the step: 2 n ε (Σ|terms| at the start + at the end).
+    (Higham); at both ends of the step: 2 n ε (Σ|terms| at the start + at the end), Σ|terms|
+    summed by the energy's own kernel (tissue.solver.step_control).
 
 Non-accumulation: the ledger D is what accepted steps gained above their budgets' base (E at the
 start plus the work), less what later steps lost, never below 0: D ← max(0, D + E(end) − E(start) −
@@ -102,15 +103,16 @@ class EnergyBudget:
         self._solves = ()         # (r, −r · v at its end) of the step's solves
         self._start = None        # (x, v) at its start
         self._start_energy = 0.0  # E there (J)
-        self._start_terms = 0.0   # Σ|terms| of E there (J)
+        self._start_terms = 0.0   # Σ|terms| of E there (J): its rounding's scale
 
-    def open(self, start: tuple[float, float], state=None, solves=()) -> None:
+    def open(self, start: tuple[float, float], state=None, solves=(), terms: float | None = None) -> None:
         """A step begins at the solver's state, whose (kinetic + elastic, potential) is `start`,
         at `state`, (positions, velocities) (default: the solver's now); `solves`: its solves'
-        `solve_residual`s, in order."""
+        `solve_residual`s, in order; `terms`: Σ|terms| of the start's energy (default: the last
+        evaluation's, `start`'s where the caller just evaluated it)."""
         self.allowed = self._start_energy = start[0] + start[1]
         self._start = (self.solver.positions(), self.solver.velocities()) if state is None else state
-        self._start_terms = start[0] + self._potential_terms(self._start[0])
+        self._start_terms = self.control.terms if terms is None else terms
         self._ledger_open, self._contact, self._solves = self.ledger, 0.0, tuple(solves)
 
     def add_work(self, joules: float) -> None:
@@ -122,21 +124,14 @@ class EnergyBudget:
         contact reactions')."""
         self._contact += joules
 
-    def _potential_terms(self, x) -> float:
-        """Σ over nodes of |potential| of gravity and the applied forces at positions x."""
+    def allowance(self) -> float:
+        """a (J) at the solver's state, its energy the control's last evaluation (module docstring)."""
         solver = self.solver
-        load = np.outer(solver.model.mass, solver.gravity) + solver.external_forces()
-        return float(np.abs((load * x).sum(1)).sum())
-
-    def allowance(self, inner: float) -> float:
-        """a (J) at the solver's state, whose kinetic + elastic energy is `inner` (module docstring)."""
-        solver = self.solver
-        x, v = solver.positions(), solver.velocities()
         cg = sum(work for _, work in self._solves[:-1])
         if self._solves:
-            cg -= float((self._solves[-1][0] * v).sum())
+            cg -= float((self._solves[-1][0] * solver.velocities()).sum())
         terms = solver.model.n_nodes + solver.model.n_elements
-        rounding = 2 * terms * self.epsilon * (self._start_terms + inner + self._potential_terms(x))
+        rounding = 2 * terms * self.epsilon * (self._start_terms + self.control.terms)
         return max(0.0, cg) + self._contact + rounding
 
     def room(self, allowance: float) -> float:
@@ -148,7 +143,7 @@ class EnergyBudget:
         """Project the step's end onto the budget; `end`: its (kinetic + elastic, potential) if
         known (else evaluated)."""
         inner, potential = self.control.energy() if end is None else end
-        allowance = self.allowance(inner)
+        allowance = self.allowance()
         budget = self.allowed + self.room(allowance)
         self.ceiling = max(self.ceiling, allowance)
         energy = inner + potential
