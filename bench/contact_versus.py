@@ -8,8 +8,8 @@ running this checkout's bench/contact.py (the same scenes and counters for both,
 checkout's own tissue) with compliance warping: `liver_press` (300-340 rows median while pressed,
 steps with ≥ 150 rows), the same at the 4 mm alarm distance (~450 rows, steps with ≥ 420) and SOFA's
 floor scene (the 596-tet liver on a rigid floor, μ 0.5, ~36 rows at rest; with the scenes' default
-energy step control, the same once settled (steps 400-480: the energy budget projects nearly every
-step there, few in the first 80), without step control as in SOFA, and with the exact compliance:
+energy step control, the same once settled (steps 400-480: until 4ba5a91 the energy budget
+projected nearly every step there; its allowance lets them be), without step control as in SOFA, and with the exact compliance:
 CHOLMOD each step, SOFA's sparse LDLᵀ counterpart). Per scene and commit: the median over rounds of each round's median ms
 per step, per stage (free motion, detection, constraints, compliance, LCP, correction; the total is
 free motion + contact), the process's CPU time per step (all its threads: the work, steadier than

@@ -15,6 +15,7 @@ solver runs serially, a launch of its own at each otherwise.
     python -m bench.step_control --budget     # the energy budget's cost on top of the check
                                               # (tissue.solver.energy_budget): step_control_budget.json,
                                               # "none" the budget off, "energy" on (both checked)
+    python -m bench.step_control --budget --out NAME     # the same into bench/results/NAME.json
 """
 
 from __future__ import annotations
@@ -69,6 +70,8 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     parser.add_argument("--budget", action="store_true", help="the energy budget off and on, both with the check")
+    parser.add_argument("--out", help="the results' name under bench/results (default: step_control_budget with "
+                        "--budget, else step_control)")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -84,7 +87,7 @@ def main(argv=None) -> None:
               f"free motion {none['free_motion_ms']:.2f} → {energy['free_motion_ms']:.2f}), CPU {none['cpu_ms_per_step']:.2f} → "
               f"{energy['cpu_ms_per_step']:.2f} ms ({row['ratio_cpu']:.2f}×); {energy['rejections']} of {row['steps']} "
               f"steps rejected, {energy['budget_projections']} projected by the budget", flush=True)
-    write_results("step_control_budget" if args.budget else "step_control",
+    write_results(args.out or ("step_control_budget" if args.budget else "step_control"),
                   {"machine": info, "settings": BUDGET if args.budget else SETTINGS, "rounds": args.rounds,
                    "steps_per_round": args.steps, "rows": rows})
 

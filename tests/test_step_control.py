@@ -134,9 +134,10 @@ def test_start_energy_reused_only_where_the_last_step_ended(backend):
 @pytest.mark.parametrize("rotation", ["large", "polar", "invertible", "linear"])
 def test_energy_kernel_matches_numpy(backend, rotation, execution):
     """The check's kernel against the numpy energy (tissue.fem.energy, itself checked against the
-    reference above) on a turned, perturbed beam with inverted elements: kinetic + elastic, and
-    the potential of gravity and applied forces, to 1e-12; where the solver runs serially, also the
-    evaluation at a step's start in the step's launch."""
+    reference above) on a turned, perturbed beam with inverted elements: kinetic + elastic, the
+    potential of gravity and applied forces, and the sum of its terms' magnitudes (the energy
+    budget's rounding scale), to 1e-12; where the solver runs serially, also the evaluation at a
+    step's start in the step's launch."""
     from tissue.solver import ImplicitEuler
 
     mesh = stability._mesh()
@@ -152,13 +153,18 @@ def test_energy_kernel_matches_numpy(backend, rotation, execution):
     assert (np.linalg.det(deformation_gradients(model, x)) < 0).sum() >= 5
     solver.set_state(x, v)
     solver.set_external_forces(forces)
-    inner, potential = EnergyControl(solver).energy()
+    control = EnergyControl(solver)
+    inner, potential = control.energy()
     elastic = elastic_energy(model, x, rotation)
     assert inner == pytest.approx(elastic + 0.5 * model.mass @ (v * v).sum(1), rel=1e-12)
     assert potential == pytest.approx(-model.mass @ (x @ gravity) - (forces * x).sum(), rel=1e-12)
+    terms = inner + np.abs(((np.outer(model.mass, gravity) + forces) * x).sum(1)).sum()     # Σ|terms|
+    assert control.terms == pytest.approx(terms, rel=1e-12)
     if execution == "serial":       # the evaluation at a step's start in its launch, from its rotations
-        start, _ = EnergyControl(solver)._checked_step(None)
+        checked = EnergyControl(solver)
+        start, _ = checked._checked_step(None)
         assert start == pytest.approx((inner, potential), rel=1e-12)
+        assert checked._start_terms == pytest.approx(terms, rel=1e-12)
         solver.set_state(x, v)
     solver.set_state(velocities=np.zeros_like(v))
     assert EnergyControl(solver).energy()[0] == pytest.approx(elastic, rel=1e-12)
@@ -201,9 +207,9 @@ def test_checked_serial_step_matches_separate_evaluations(backend, rotation):
         control = EnergyControl(solver, fused=fused)
         energies, checked_step = [], control._checked_step
 
-        def logged(start, checked_step=checked_step, energies=energies):
+        def logged(start, checked_step=checked_step, energies=energies, control=control):
             start, end = checked_step(start)
-            energies.append((*start, *end))
+            energies.append((*start, *end, control.terms))     # and Σ|terms| at the end
             return start, end
 
         control._checked_step = logged

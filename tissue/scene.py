@@ -162,7 +162,8 @@ class Solver(Options):
     # linearisation per step overshoots (soft material, large dt, impacts); 'none': every step once
     step_control: Literal["energy", "none"] = "energy"
     # With step_control 'energy' (its energy is the check's): no step ends above its start's energy
-    # plus the work the moving obstacles did on the body; the excess is projected out
+    # plus the work the moving obstacles did on the body, beyond what the solvers' own error allows
+    # and never by more than the largest such allowance over the run; the excess is projected out
     # (tissue.solver.energy_budget)
     energy_budget: bool = True
 

@@ -123,6 +123,7 @@ class ContactLayer:
             budget = getattr(body.stepper, "budget", None)
             if budget is not None and len(c) and not (c.soft & ((c.body == i) | (c.other == i))).any():
                 budget.add_work(obstacle_work(result, i))
+                budget.add_allowance(contact_allowance(result, i, self.stage.settings.tolerance))
                 budget.close()
 
     def report(self) -> tuple[dict[str, float], dict[str, float]]:
@@ -159,6 +160,17 @@ def obstacle_work(result, body: int) -> float:
     forces = result.contact_forces
     mine = result.contacts.body[:len(forces)] == body
     return float(np.einsum("kj,kj->", forces[mine], result.contacts.other_motion[:len(forces)][mine]))
+
+
+def contact_allowance(result, body: int, tolerance: float) -> float:
+    """A bound (J) on the energy the contact reactions on `body` may have added in the step of
+    `result` beyond exact ones (tissue.solver.energy_budget): each reaction's force |λᵢ| / h over
+    the constraint's violation, at most `tolerance` (m, or the solve's residual where it ended
+    above it) at the step's end and at its start (the last solve's), 2 tolerance Σ |λᵢ| / h."""
+    impulses = result.contact_impulses
+    mine = result.contacts.body[:len(impulses)] == body
+    violation = max(tolerance, result.info.residual if result.info is not None else 0.0)
+    return 2.0 * violation * float(np.linalg.norm(impulses[mine], axis=1).sum()) / result.dt
 
 
 def obstacle_surface(obstacle: RigidObstacle, bounds) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,6 @@
 """The energy budget (Dinev et al. 2018, "Stabilizing integrators for real-time physics"): no step
-ends with more energy than it started with plus the work done on the body in it.
+ends with more energy than it started with plus the work done on the body in it, beyond what the
+solvers' own accuracy lets a step gain (its allowance), and those allowances cannot add up.
 
 "large" (edge-frame) forces are not the gradient of an energy, so a step can gain energy that no
 step size removes; the energy check (tissue.solver.step_control) halves a step that gains more
@@ -8,9 +9,9 @@ than its tolerance, and the gains under it add up (the abrupt twist of the stabi
 
 The energy E is the energy check's: kinetic + elastic + the potential of gravity and the applied
 forces (their work is its fall). A step's budget is E at its start plus the work the contact
-stage's moving obstacles did on the body (`add_work`; static obstacles and held nodes do none).
-`close()` compares E at the step's end with it and, where it is over by more than rounding,
-projects the state back onto the budget:
+stage's moving obstacles did on the body (`add_work`; static obstacles and held nodes do none)
+plus what is left of its allowance a (below). `close()` compares E at the step's end with it and,
+where it is over, projects the state back onto the budget:
 
   - the kinetic energy K takes the excess when it holds it: v ← s v, s = √(1 − excess / K);
   - else the state goes back along the step toward its start (x₀ + s (x − x₀), s v), to an s in
@@ -19,29 +20,72 @@ projects the state back onto the budget:
     energy near quadratic, potential linear), so s is found by regula falsi (`_crossing`).
 
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
-rest (`budget_unresolved`). The solver's stats count `budget_projections` (steps projected) and
-`budget_removed` (J). Costs: a copy of x and v at each step's start, and, per projected step, a
-velocity write (and the search's energy launches when the kinetic energy cannot absorb it).
+rest (`budget_unresolved`). The solver's stats count `budget_projections` (closes that changed the
+state), `budget_removed` (J), `budget_allowance` (a, J) and `budget_ledger` (D after it, J).
+Costs: a copy of x and v at each step's start, a read of r and two of v (host views on the CPU),
+and, per projected step, a velocity write (and the search's energy launches when the kinetic
+energy cannot absorb it).
 
-Why a body at rest on a static floor is projected: its contact correction ends a step at rest
-slightly above its start, by ~1e-4 of the work gravity does in the step's free motion (the floor
-scene of bench/contact.py, CG converged to 1e-12: 3.2e-9 J at every step; no rounding at that
-scale; without the budget that run's energy only fluctuates, ±6e-9 J a step). A real gain of the
-scheme, and the budget removes it. A CG capped short of convergence (SOFA's 25 iterations) loses
-energy in the free motion that hides it on some steps, fewer where it is warm-started (closer to
-the converged solve). Once the body has settled (after ~400 steps) nearly every step is projected,
-and U rises from the start along the whole step: the step is undone (s = 0), the body held where
-it rests, found in 2 evaluations (bisection: 20, each an elastic energy of every element).
+The allowance. Implicit Euler on its linearised model (A dv = b, tissue.solver.implicit_euler)
+loses energy exactly: with the step's extra impulses s (what A dv − b is beyond the forces),
+
+    E(x₁, v₁) − E(x₀, v₀) = −½ dvᵀM dv − ½ h² v₁ᵀK v₁ − h v₁ᵀB v₁ + v₁ · s + N,
+
+N the co-rotational energy's departure from its quadratic model over the step (second order in
+the motion). A real gain is N, or a step too large for the linearisation; v₁ · s is the solvers'
+inexactness, what a body at rest on a floor shows (SOFA's floor scene, bench/contact.py, settled:
+v₁ · s = 2-3.5e-9 J a step, the dissipation 0.8-2.5e-9, N 1e-14: the step ends 0.3-2.3e-9 J up).
+Its parts, each bounded by what the step knows:
+
+  - CG's residual r = b − A dv (`ImplicitEuler.residual`) is an impulse −r the solve left
+    unbalanced, whose work is −r · v, v the velocity at the solve's end: the step's end (after the
+    contact correction) for its last solve, the half step's for the energy check's earlier halves
+    (`solve_residual`, with `open`). Their sum is computed, not bounded: through norms,
+    ‖M^-½ r‖ ‖M^½ v‖, it was 10× the sum on the abrupt twist (3.8e-4 of its energy a step, at CG's
+    1e-3). A capped CG (SOFA's 25 iterations, ‖r‖/‖b‖ ~ 0.13 at rest on the floor) is about half
+    of v₁ · s there.
+  - The contact reactions λ (impulses) do the work λ · H v₁ = Σ λᵢ · (δᵢ(end) − δᵢ(start)) / h;
+    exact reactions do none where their contact touches at both ends (complementarity) and only
+    lose where they slide (Coulomb's law). The solver meets each contact's constraints to within
+    its natural-map residual, at most `tolerance` (m), at the step's end, as the last step's solve
+    did at its start: a reaction's work beyond the exact one's is at most |λᵢ| / h times tolerance
+    at each end, 2 tolerance Σ |λᵢ| / h (`tissue.contact.layer.contact_allowance`, `add_allowance`).
+    A reaction of a contact apart is itself within the residual and is not counted. The warped
+    compliance's own error (A dv_c ≠ Hᵀλ) works on v₁ too and is not bounded here: ~1e-10 J a
+    step on the settled floor scene, but 1.8e-6 J on the stability matrix's clamped beam resting
+    on its floor (2.3× the contact part), which stays projected (docs/stability.md).
+  - Rounding: E is a fixed-order sum of n terms (each node's kinetic and potential energy, each
+    element's elastic energy), each good to a few ε of itself, the sum to (n − 1) ε Σ|terms|
+    (Higham); at both ends of the step: 2 n ε (Σ|terms| at the start + at the end), Σ|terms|
+    summed by the energy's own kernel (tissue.solver.step_control).
+
+Non-accumulation: the ledger D is what accepted steps gained above their budgets' base (E at the
+start plus the work), less what later steps lost, never below 0: D ← max(0, D + E(end) − E(start) −
+work). Its ceiling is the largest allowance of any one step so far, and a step may gain its own
+allowance as far as D stays under it: the budget is E(start) + work + min(a, ceiling − D). So at
+every step's end E ≤ E(first start) + the work done + the ceiling (the reference E − D only falls
+or takes the work; a step counted `budget_unresolved` is over it by what its obstacle took beyond
+the kinetic energy), however many steps gain. Losses pay D back, so a body at rest, its steps
+gaining and losing by turns, keeps its room; a steady gain is stopped once D meets the ceiling.
+(Room of a − D only, the ceiling each step's own allowance: one transient of a large allowance,
+the first steps of a run restarted from a state with cold warm starts, left D above the settled
+steps' allowances, and the liver on the floor was held again until losses paid it back.)
 """
 
 import numpy as np
 
 from .. import backend
 
-# A rise within this fraction of the energy in play (kinetic + elastic) is rounding, not a gain.
-ROUNDING = {"f64": 1e-10, "f32": 1e-5}
 PRECISION = 1e-3    # of the excess: the most the search back along the step removes beyond it
 SEARCHES = 20       # energy evaluations at most in that search
+EPSILON = {"f64": float(np.finfo(np.float64).eps), "f32": float(np.finfo(np.float32).eps)}
+
+
+def solve_residual(solver) -> tuple[np.ndarray, float]:
+    """(r, −r · v) after a solve of `solver`: its CG residual (n, 3) and the work of the impulse
+    −r on the velocity at the solve's end (J)."""
+    r = solver.residual()
+    return r, -float((r * solver.velocities()).sum())
 
 
 class EnergyBudget:
@@ -50,65 +94,102 @@ class EnergyBudget:
     def __init__(self, control):
         self.control = control
         self.solver = control.solver
-        self.rounding = ROUNDING[backend.current().precision]
-        self.allowed = None       # the energy the current step may end with (J)
-        self.in_play = 0.0        # kinetic + elastic at its start (J): the rounding's scale
+        self.epsilon = EPSILON[backend.current().precision]
+        self.allowed = None       # the energy the current step may end with before its allowance (J)
+        self.ledger = 0.0         # D (J): accepted gains above the budgets' base not yet lost again
+        self.ceiling = 0.0        # the largest allowance of a step so far (J): D's bound
+        self._ledger_open = 0.0   # D at the current step's start
+        self._contact = 0.0       # the contact stage's part of the allowance (J)
+        self._solves = ()         # (r, −r · v at its end) of the step's solves
         self._start = None        # (x, v) at its start
         self._start_energy = 0.0  # E there (J)
+        self._start_terms = 0.0   # Σ|terms| of E there (J): its rounding's scale
 
-    def open(self, start: tuple[float, float], state=None) -> None:
+    def open(self, start: tuple[float, float], state=None, solves=(), terms: float | None = None) -> None:
         """A step begins at the solver's state, whose (kinetic + elastic, potential) is `start`,
-        at `state`, (positions, velocities) (default: the solver's now)."""
-        self.allowed, self.in_play = start[0] + start[1], start[0]
-        self._start_energy = self.allowed
+        at `state`, (positions, velocities) (default: the solver's now); `solves`: its solves'
+        `solve_residual`s, in order; `terms`: Σ|terms| of the start's energy (default: the last
+        evaluation's, `start`'s where the caller just evaluated it)."""
+        self.allowed = self._start_energy = start[0] + start[1]
         self._start = (self.solver.positions(), self.solver.velocities()) if state is None else state
+        self._start_terms = self.control.terms if terms is None else terms
+        self._ledger_open, self._contact, self._solves = self.ledger, 0.0, tuple(solves)
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""
         self.allowed += joules
 
+    def add_allowance(self, joules: float) -> None:
+        """A bound on the energy another stage's inexact solve may have added in the step (the
+        contact reactions')."""
+        self._contact += joules
+
+    def allowance(self) -> float:
+        """a (J) at the solver's state, its energy the control's last evaluation (module docstring)."""
+        solver = self.solver
+        cg = sum(work for _, work in self._solves[:-1])
+        if self._solves:
+            cg -= float((self._solves[-1][0] * solver.velocities()).sum())
+        terms = solver.model.n_nodes + solver.model.n_elements
+        rounding = 2 * terms * self.epsilon * (self._start_terms + self.control.terms)
+        return max(0.0, cg) + self._contact + rounding
+
+    def room(self, allowance: float) -> float:
+        """What the step may end with above its budget's base, its allowance `allowance`:
+        min(a, ceiling − D), the ceiling counting a (module docstring)."""
+        return max(0.0, min(allowance, max(self.ceiling, allowance) - self._ledger_open))
+
     def close(self, end: tuple[float, float] | None = None) -> None:
         """Project the step's end onto the budget; `end`: its (kinetic + elastic, potential) if
         known (else evaluated)."""
         inner, potential = self.control.energy() if end is None else end
-        excess = inner + potential - self.allowed
+        allowance = self.allowance()
+        budget = self.allowed + self.room(allowance)
+        self.ceiling = max(self.ceiling, allowance)
+        energy = inner + potential
+        excess = energy - budget
         solver = self.solver
-        if excess <= self.rounding * max(self.in_play, inner):
-            solver.stats.count(budget_projections=0, budget_removed=0.0, budget_unresolved=0)
+        if excess <= 0.0:
+            self.ledger = max(0.0, self._ledger_open + energy - self.allowed)
+            solver.stats.count(budget_projections=0, budget_removed=0.0, budget_unresolved=0,
+                               budget_allowance=allowance, budget_ledger=self.ledger)
             return
         x, v = solver.positions(), solver.velocities()
         kinetic = self._kinetic(v)
-        removed, unresolved = excess, 0
+        removed, unresolved, ends_with = excess, 0, budget
         if kinetic < excess:
-            x, v, excess, unresolved = self._back_along_step(x, v, kinetic, excess)
+            x, v, excess, unresolved, ends_with = self._back_along_step(x, v, kinetic, excess, budget)
             kinetic = self._kinetic(v)
         if excess > 0.0 and kinetic > 0.0:
             v = v * np.sqrt(max(0.0, 1.0 - excess / kinetic))
         solver.set_state(x, v)      # not evaluated: the next evaluation, if any, finds it changed
-        solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved)
+        self.ledger = max(0.0, self._ledger_open + ends_with - self.allowed)
+        solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved,
+                           budget_allowance=allowance, budget_ledger=self.ledger)
 
     def _kinetic(self, v) -> float:
         return 0.5 * float(self.solver.model.mass @ (v * v).sum(1))
 
-    def _back_along_step(self, x, v, kinetic, excess):
-        """(x, v, excess, unresolved) at an s with U(x₀ + s (x − x₀)) within the budget (U = E − K,
+    def _back_along_step(self, x, v, kinetic, excess, budget):
+        """(x, v, excess, unresolved, energy) at an s with U(x₀ + s (x − x₀)) within `budget` (U = E − K,
         K = `kinetic` at the end,
         the energy less the kinetic, which s² K keeps) by at most PRECISION of `excess` (the end's,
         s = 1), so that at most (1 + PRECISION) times the excess is removed; the excess left there
-        goes to the kinetic energy."""
+        goes to the kinetic energy; `energy`: what the state ends with once it has."""
         solver, (x0, v0) = self.solver, self._start
 
         def over(s):    # U − the budget at s (evaluated at rest: U is the energy there)
             solver.set_state(x0 + s * (x - x0))
             inner, potential = self.control.energy()
-            return inner + potential - self.allowed
+            return inner + potential - budget
 
         solver.set_state(velocities=np.zeros_like(v))
-        f_low = self._start_energy - self._kinetic(v0) - self.allowed     # U at the start: E less K
+        f_low = self._start_energy - self._kinetic(v0) - budget     # U at the start: E less K
         if f_low > 0.0:              # the start is over the budget: kept, at rest
-            return x0, np.zeros_like(v), 0.0, 1
+            return x0, np.zeros_like(v), 0.0, 1, budget + f_low
         low, f_low = _crossing(over, f_low, excess - kinetic, PRECISION * excess)
-        return x0 + low * (x - x0), low * v, max(f_low + low * low * kinetic, 0.0), 0
+        left = f_low + low * low * kinetic      # over the budget there (the velocities take it if > 0)
+        return x0 + low * (x - x0), low * v, max(left, 0.0), 0, budget + min(left, 0.0)
 
 
 def _crossing(f, f_start: float, f_end: float, precision: float) -> tuple[float, float]:

@@ -353,6 +353,11 @@ class ImplicitEuler:
     def velocities(self) -> np.ndarray:
         return self._read(self.v)
 
+    def residual(self) -> np.ndarray:
+        """The last solve's CG residual r = b − A dv (n, 3), in N·s: the impulse the step left
+        unbalanced (tissue.solver.energy_budget bounds its work)."""
+        return self._read(self.arrays["r"])
+
     def _read(self, array) -> np.ndarray:
         """A float64 copy of a nodal array's rows in use: on the CPU from the array's own memory
         (Taichi's to_numpy launches a parallel copy kernel, milliseconds when the cores are

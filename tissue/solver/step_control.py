@@ -13,7 +13,8 @@ forces over the step. If it rose by more than `tolerance` of the energy in play,
 undone and taken as two steps of dt/2, each checked the same way, down to dt / 2^max_halvings; a
 step still gaining energy there is kept, and counted (`energy_unresolved` in the solver's stats).
 The stats also count the step's rejections (`energy_rejections`). With `budget`, the step's end
-is then held to its start's energy plus the work done on it (tissue.solver.energy_budget).
+is then held to its start's energy plus the work done on it, plus the allowance its solves' own
+error earns (tissue.solver.energy_budget: the CG residuals the kept solves leave are measured here).
 
 The energy is evaluated on the device over the solver's arrays (nothing copied to the host): per
 element from its polar rotation, or its stretches where Newton–Schulz does not find the rotation
@@ -35,7 +36,7 @@ from .. import backend, compilation
 from ..errors import TissueError
 from ..fem.energy import element_energy, element_energy_at_rotations
 from ..launch import host_view, replayed
-from .energy_budget import EnergyBudget
+from .energy_budget import EnergyBudget, solve_residual
 from .implicit_euler import GX, GY, GZ, STEP, _begin, _end, _multigrid, _solve_serial
 
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
@@ -46,9 +47,9 @@ MAX_HALVINGS = 6        # dt / 64 at the finest
 ENERGY_WORK = ti.types.argpack(per_element=ti.types.ndarray(), seen_x=ti.types.ndarray(),
                                seen_v=ti.types.ndarray(), totals=ti.types.ndarray())
 # The elastic energy of the last evaluation and whether it was fresh; then the (kinetic + elastic,
-# potential, fresh) of an evaluation at a step's start and at its end.
-ELASTIC, FRESH, AT_START, AT_END = 0, 1, 2, 5
-TOTALS = 8
+# potential, fresh, Σ|terms|) of an evaluation at a step's start and at its end.
+ELASTIC, FRESH, AT_START, AT_END = 0, 1, 2, 6
+TOTALS = 10
 
 
 @ti.func
@@ -67,21 +68,26 @@ def _keep_state(k: ti.template(), w: ti.template(), previous, edited):
 @ti.func
 def _close_evaluation(k: ti.template(), w: ti.template(), out):
     """The kinetic energy and the potential of gravity and the applied forces; then the evaluation's
-    (kinetic + elastic, potential, fresh) into totals[out:out + 3] (one thread)."""
+    (kinetic + elastic, potential, fresh, Σ|terms|) into totals[out:out + 4] (one thread); Σ|terms|,
+    the sum of the magnitudes of the terms summed (kinetic and elastic ones are ≥ 0), sizes the
+    sums' rounding (tissue.solver.energy_budget)."""
     g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
-    kinetic, potential = 0.0, 0.0
+    kinetic, potential, magnitude = 0.0, 0.0, 0.0
     for v in range(k.counts[0]):
         kinetic += 0.5 * k.mass[v] * k.v[v].norm_sqr()
-        potential -= (k.mass[v] * g + k.external[v]).dot(k.x[v])
+        term = (k.mass[v] * g + k.external[v]).dot(k.x[v])
+        potential -= term
+        magnitude += ti.abs(term)
     w.totals[out] = kinetic + w.totals[ELASTIC]
     w.totals[out + 1] = potential
     w.totals[out + 2] = w.totals[FRESH]
+    w.totals[out + 3] = w.totals[out] + magnitude
 
 
 @ti.func
 def _evaluate_serial(k: ti.template(), w: ti.template(), rotation: ti.template(), at_rotations: ti.template(),
                      previous, edited, out, tol):
-    """An evaluation in one thread, into totals[out:out + 3]; `at_rotations`: the elements' energies
+    """An evaluation in one thread, into totals[out:out + 4]; `at_rotations`: the elements' energies
     from the FEM's rotations, which must be those of the state (a step's start); `tol`: the
     rotations' (tissue.fem.energy.element_energy)."""
     _keep_state(k, w, previous, edited)
@@ -162,6 +168,10 @@ class EnergyControl:
         self._edits = None          # the model's edit count at the last evaluation
         self._slot = 0              # where the last evaluation kept its state
         self._first_start = None    # (kinetic + elastic, potential) at the current step's start
+        self._first_terms = None    # and Σ|terms| of its energy there
+        self._start_terms = None    # Σ|terms| at the start of the last step taken, where evaluated
+        self.terms = 0.0            # Σ|terms| of the last evaluation's energy (its rounding's scale)
+        self._solves = []           # the budget's measures of the current step's kept solves
         self.budget = EnergyBudget(self) if budget else None     # its step's end projected onto it
 
     def _work_pack(self):
@@ -197,7 +207,7 @@ class EnergyControl:
         w = self._work_pack()
         ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot, self._edited(),
                solver.fem.rotation_tolerance)
-        inner, potential, fresh = (float(t) for t in self._totals()[AT_END:AT_END + 3])
+        inner, potential, fresh, self.terms = (float(t) for t in self._totals()[AT_END:AT_END + 4])
         self._slot = 1 - self._slot
         self.evaluations += int(fresh)
         return inner, potential
@@ -215,7 +225,7 @@ class EnergyControl:
         # The budget opens on the step's start: its state kept now, its energy the first
         # evaluation's (in the step's own launch where fused).
         start_state = (solver.positions(), solver.velocities()) if self.budget else None
-        self._first_start = None
+        self._first_start, self._solves = None, []
         try:
             end = self._advance(None, dt, 0, rejections)
         finally:
@@ -223,7 +233,7 @@ class EnergyControl:
                 solver.set_parameters(dt=dt)
         solver.stats.count(energy_rejections=rejections[0], energy_unresolved=rejections[1])
         if self.budget:
-            self.budget.open(self._first_start, start_state)
+            self.budget.open(self._first_start, start_state, self._solves, self._first_terms)
             self.budget.close(end)
 
     def _advance(self, start, dt, depth, rejections):
@@ -234,12 +244,13 @@ class EnergyControl:
             solver.set_parameters(dt=dt)
         start, end = self._checked_step(start)
         if self._first_start is None:
-            self._first_start = start
+            self._first_start, self._first_terms = start, self._start_terms
         gain = (end[0] + end[1]) - (start[0] + start[1])
-        if gain <= self.tolerance * max(start[0], end[0]):
-            return end
-        if depth == self.max_halvings:
-            rejections[1] += 1
+        within = gain <= self.tolerance * max(start[0], end[0])
+        if within or depth == self.max_halvings:     # kept (counted where still gaining)
+            rejections[1] += int(not within)
+            if self.budget:
+                self._solves.append(solve_residual(solver))
             return end
         rejections[0] += 1
         solver.set_state(*self._previous_state())
@@ -247,17 +258,20 @@ class EnergyControl:
         return self._advance(middle, dt / 2, depth + 1, rejections)
 
     def _checked_step(self, start):
-        """One step of the solver: (the energy at its start, at its end)."""
+        """One step of the solver: (the energy at its start, at its end); Σ|terms| of the start's
+        in `_start_terms` where evaluated (else None)."""
         solver = self.solver
         if not (self.fused and solver.execution == "serial" and not solver.split_stages):
+            self._start_terms = None
             if start is None:
-                start = self.energy()
+                start, self._start_terms = self.energy(), self.terms
             solver.step()
             return start, self.energy()
         k, o, tol = solver.prepare_step()     # one launch: the evaluations, start and end, in the step's
         with solver.stats.stage("step"):
             CHECKED_SERIAL(k, o, self._work_pack(), tol, self._slot, self._edited())
-        t = [float(t) for t in self._totals()[AT_START:AT_END + 3]]     # (inner, potential, fresh) twice
-        self.evaluations += int(t[2]) + int(t[5])
+        t = [float(t) for t in self._totals()[AT_START:AT_END + 4]]   # (inner, potential, fresh, Σ|terms|) twice
+        self.evaluations += int(t[2]) + int(t[6])
+        self._start_terms, self.terms = t[3], t[7]
         solver.record_step(solver.report())
-        return (t[0], t[1]), (t[3], t[4])
+        return (t[0], t[1]), (t[4], t[5])
