@@ -107,8 +107,8 @@ def _diagonal_blocks(W, n, sparse: bool):
         D = np.zeros((n, 3, 3))
         np.add.at(D, rows[on], B.data[on])
         return D
-    idx = np.arange(n)
-    return W.reshape(n, 3, n, 3)[idx, :, idx, :]
+    # A view [i, a, b] = W[3i + a, 3i + b] (gathering them by fancy indexing cost several times more)
+    return np.diagonal(W.reshape(n, 3, n, 3), axis1=0, axis2=2).transpose(2, 0, 1)
 
 
 class FrictionalContactSolver:
