@@ -166,14 +166,18 @@ def _read_return(primal, context, kind, i):
     return primal.construct_kernel_ret(context, kind, (i,))
 
 
-def kept_pack(kept, kind, arrays: dict):
+def kept_pack(kept, kind, arrays):
     """(argpack, its arrays): `kept` (such a pair, or None) when `arrays` holds the same objects,
     else `kind(**arrays)` anew. Building an argpack costs ~0.15 ms in Taichi, and launches over a
     kept one replay. The arrays are compared by identity, one by one in C (ndarrays have no value
-    equality): a tuple of their ids built in Python cost a few µs a launch over ~50 arrays."""
-    values = list(arrays.values())
+    equality): a tuple of their ids built in Python cost a few µs a launch over ~50 arrays.
+    `arrays`: {member: array}, or a tuple of the arrays in the order of `kind`'s members (cheaper
+    to build, for a launch made every step)."""
+    values = arrays if isinstance(arrays, tuple) else tuple(arrays.values())
     if kept is not None and len(values) == len(kept[1]) and all(map(operator.is_, values, kept[1])):
         return kept
+    if isinstance(arrays, tuple):
+        arrays = dict(zip(kind.members, arrays, strict=True))
     return kind(**arrays), values
 
 

@@ -466,22 +466,21 @@ class WarpedCompliance:
     def _pack(self):
         """The argpack of the rotations' and W's launches (WARP), rebuilt only when one of its
         arrays was re-allocated."""
-        valence, incidence = self.solver.fem.model.gather_index()
-        arrays = dict(self._shared(), Re=self._element_rotations, valence=valence, incidence=incidence, U=self.U,
-                      ht=self.ht, Qt=self._Qt)
+        arrays = (*self._shared(), self._element_rotations, *self.solver.fem.model.gather_index(), self.U, self.ht,
+                  self._Qt)
         self._kept_packs["warp"] = kept_pack(self._kept_packs.get("warp"), WARP, arrays)
         return self._kept_packs["warp"][0]
 
     def _correction_pack(self, lam):
         """The correction's argpack (CORRECTION), λ written first."""
-        arrays = dict(self._shared(), lam=self.storage.put("lam", lam, self.real), r0=self.r0, pushed=self.pushed,
-                      x=self.solver.x, v=self.solver.v)
+        arrays = (*self._shared(), self.storage.put("lam", lam, self.real), self.r0, self.pushed, self.solver.x,
+                  self.solver.v)
         self._kept_packs["correction"] = kept_pack(self._kept_packs.get("correction"), CORRECTION, arrays)
         return self._kept_packs["correction"][0]
 
-    def _shared(self) -> dict:
-        return dict(R=self.R, C0=self.C0, rows=self.rows, hr=self.hr, jds=self._jds, value=self._value,
-                    sizes=self._scalars[0], reals=self._scalars[1])
+    def _shared(self) -> tuple:
+        """The arrays of SHARED_MEMBERS, in their order."""
+        return self.R, self.C0, self.rows, self.hr, self._jds, self._value, *self._scalars
 
     def _read_source(self, touched: np.ndarray) -> np.ndarray:
         """C0 from the cutting compliance followed, and per touched node its block of rows in C0.

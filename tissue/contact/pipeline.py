@@ -210,6 +210,7 @@ class ContactStage:
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
         self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
+        self._frictionless = (None, None)       # a μ per contact, and where it is 0 (_solve)
         self._kept = None                       # the last rows' Jacobian (_jacobian)
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
@@ -513,7 +514,9 @@ class ContactStage:
             # The problem on W / w̄ (w̄ the mean of its diagonal). Frictionless contacts have empty
             # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
             # (with μ = 0 it never uses them: r_t = 0).
-            t = np.flatnonzero(mu == 0)
+            if self._frictionless[0] is not mu:             # (μ is the kept rows' at rest)
+                self._frictionless = (mu, np.flatnonzero(mu == 0))
+            t = self._frictionless[1]
             if factored:
                 D = W.diagonal.copy()
                 D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
