@@ -965,6 +965,32 @@ def test_kept_rows_of_a_large_body_are_warped_with_this_steps_rotations(cantilev
     assert np.array_equal(W["kept"], W["new"])
 
 
+def test_kept_rows_reuse_their_gathered_compliance(cantilever):
+    """With the rows kept (the same JDS object, a body at rest), W is formed without gathering A₀⁻¹
+    among the touched nodes again (the compact copy is still there); after the state turned it
+    equals, bit for bit, W formed from a new JDS of the same rows, which gathers it anew."""
+    from tissue.contact.compliance import GATHER
+    from tissue.contact.constraints import JaggedDiagonal, build_rows
+
+    solver, warped, _ = cantilever
+    rest = solver.fem.mesh.points
+    solver.set_state(rest, np.zeros_like(rest))
+    rows = build_rows(_surface_contacts(solver, 20), [rest], [rest])
+    jds = JaggedDiagonal(rows, 0)
+    warped.prepare(jds)
+    warped.add_to(np.zeros((rows.n_rows, rows.n_rows)))
+    turned = rest @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T
+    solver.set_state(turned, np.zeros_like(turned))
+    W, gathered = {}, {}
+    for name, prepared in (("kept", jds), ("new", JaggedDiagonal(rows, 0))):
+        warped.prepare(prepared)
+        W[name] = np.zeros((rows.n_rows, rows.n_rows))
+        warped.add_to(W[name])
+        gathered[name] = int(warped._sizes[GATHER])
+    assert gathered == {"kept": 0, "new": 1}
+    assert np.array_equal(W["kept"], W["new"])
+
+
 def test_rows_of_contacts_at_rest_are_kept_and_rebuilt_when_they_change(damped_block):
     """A block settling on a plane: once its contacts stop changing, the stage keeps last step's
     Jacobian, μ and JDS and builds only δ_free (ContactStage._jacobian). Every step's rows and

@@ -708,6 +708,27 @@ def test_auto_equals_gauss_seidel_where_the_sweeps_converge(solve):
     assert info.converged and natural_map(W, q, mu, r) <= 1e-10
 
 
+def test_auto_sweeps_small_problems_longer(solve, monkeypatch):
+    """Below AUTO_SMALL contacts a sweep costs microseconds and Newton's host step far more, so
+    auto sweeps on while every AUTO_PHASE_SMALL sweeps halve the residual at a rate that reaches
+    the tolerance within AUTO_SWEEPS_SMALL: 11 contacts on 3 rigid boxes, which Gauss-Seidel
+    finishes in 114 sweeps (at the rate of its first 16, not within AUTO_HORIZON), end in the
+    sweeps, as Gauss-Seidel's; with the rule of larger problems Newton finishes them."""
+    from tissue.contact import frictional_contact, newton
+
+    steps, newton_step = [], newton.newton_step
+    monkeypatch.setattr(newton, "newton_step", lambda *a, **k: steps.append(1) or newton_step(*a, **k))
+    W, q, mu = rigid_bodies_problem(3, 11, np.random.default_rng(143))
+    W = W.toarray()
+    rg, gs = solve(W, q, mu, tol=1e-8, max_iterations=1000, method="gauss_seidel")
+    ra, auto = solve(W, q, mu, tol=1e-8, max_iterations=1000, method="auto")
+    assert gs.converged and gs.iterations == 114 and auto.iterations == gs.iterations and not steps
+    np.testing.assert_array_equal(ra, rg)
+    monkeypatch.setattr(frictional_contact, "AUTO_SMALL", 0)
+    rn, larger = solve(W, q, mu, tol=1e-8, max_iterations=1000, method="auto")
+    assert steps and larger.converged and natural_map(W, q, mu, rn) <= 1e-8
+
+
 def test_newton_gmres_on_a_nearby_factor_matches_lapack():
     """_gmres: a system whose rows differ from the factorised one's in a few places (as a Newton
     system after a few contacts changed state), and one among partly other contacts (some opened,

@@ -60,17 +60,27 @@ class Replayed:
         self.kernel = kernel
         self.primal = kernel._primal
         self.contexts: dict[tuple, tuple] = {}
+        # The ids of arguments replayed before -> (those arguments, their context): a launch with
+        # the very same objects skips making the key (reading a numpy array's address costs about
+        # a microsecond). The entry keeps the objects alive, so an id found there is theirs.
+        self._by_identity: dict[tuple, tuple] = {}
 
     def __call__(self, *args):
         if backend.current().arch != "cpu":
             return self.kernel(*args)
-        key = tuple(_key(a) for a in args)
-        if _UNREPLAYABLE in key:
-            return self.kernel(*args)
-        hit = self.contexts.get(key)
+        ids = tuple(map(id, args))
+        hit = self._by_identity.get(ids)
         if hit is None:
-            return self._record(key, args)
-        compiled, context, _ = hit
+            key = tuple(_key(a) for a in args)
+            if _UNREPLAYABLE in key:
+                return self.kernel(*args)
+            recorded = self.contexts.get(key)
+            if recorded is None:
+                return self._record(key, args)
+            if len(self._by_identity) > 64:    # new argument objects every launch: keep the newest only
+                self._by_identity.clear()
+            hit = self._by_identity[ids] = (args, recorded)
+        compiled, context, _ = hit[1]
         impl.get_runtime().prog.launch_kernel(compiled, context)
         return self._returns(context)
 
@@ -85,6 +95,7 @@ class Replayed:
         if recorder.launched is not None:
             if len(self.contexts) > 64:       # arguments that keep changing: keep the newest only
                 self.contexts.clear()
+                self._by_identity.clear()
             compiled, context = recorder.launched
             prog = recorder.prog
             for index, array in self._ndarray_slots(args):
@@ -155,14 +166,18 @@ def _read_return(primal, context, kind, i):
     return primal.construct_kernel_ret(context, kind, (i,))
 
 
-def kept_pack(kept, kind, arrays: dict):
+def kept_pack(kept, kind, arrays):
     """(argpack, its arrays): `kept` (such a pair, or None) when `arrays` holds the same objects,
     else `kind(**arrays)` anew. Building an argpack costs ~0.15 ms in Taichi, and launches over a
     kept one replay. The arrays are compared by identity, one by one in C (ndarrays have no value
-    equality): a tuple of their ids built in Python cost a few µs a launch over ~50 arrays."""
-    values = list(arrays.values())
+    equality): a tuple of their ids built in Python cost a few µs a launch over ~50 arrays.
+    `arrays`: {member: array}, or a tuple of the arrays in the order of `kind`'s members (cheaper
+    to build, for a launch made every step)."""
+    values = arrays if isinstance(arrays, tuple) else tuple(arrays.values())
     if kept is not None and len(values) == len(kept[1]) and all(map(operator.is_, values, kept[1])):
         return kept
+    if isinstance(arrays, tuple):
+        arrays = dict(zip(kind.members, arrays, strict=True))
     return kind(**arrays), values
 
 

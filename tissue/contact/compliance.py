@@ -126,9 +126,9 @@ WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS
                                                                  "U", "ht", "Qt")})
 CORRECTION = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS, "lam", "r0", "pushed",
                                                                        "x", "v")})
-WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows")
+WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows", "gather")
 WARP_REALS = ("h", "inverse_mass", "tolerance")
-N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS = range(len(WARP_SIZES))
+N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS, GATHER = range(len(WARP_SIZES))
 H, INVERSE_MASS, TOLERANCE = range(len(WARP_REALS))
 
 
@@ -167,15 +167,16 @@ def _rotations_and_hr(k: ti.template(), o_node, nnz, serial: ti.template()):
 
 @ti.func
 def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, o_count, o_ptr, o_touched, n_active, d, ld,
-                             inverse_mass, serial: ti.template()):
-    """The rows' translations H T, and Q among the touched dofs gathered once into Qt from q0 (ld ×
-    ld, row-major; a free body's factor adds the translation's block): a compact copy stays in
-    cache where scattered reads of the whole Q (3n × 3n, 10 MB for the liver) miss it."""
+                             inverse_mass, gather, serial: ti.template()):
+    """The rows' translations H T, and with gather (1; 0: Qt holds it already) Q among the touched
+    dofs gathered once into Qt from q0 (ld × ld, row-major; a free body's factor adds the
+    translation's block): a compact copy stays in cache where scattered reads of the whole Q (3n ×
+    3n, 10 MB for the liver) miss it."""
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         k.ht[i] = _row_translation(k, o_count, o_ptr, i)
     ti.loop_config(serialize=serial)
-    for a, m in ti.ndrange(ld, ld):
+    for a, m in ti.ndrange(ld * gather, ld):
         value_am = 0.0
         if a < d and m < d:
             value_am = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
@@ -204,7 +205,8 @@ def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
     _rotations_and_hr(k, o_node, nnz, serial)
     d = 3 * k.sizes[N_TOUCHED]
-    _translations_and_gather(k, k.Qt, 0, o_count, o_ptr, o_touched, n_active, d, d, inverse_mass, serial)
+    _translations_and_gather(k, k.Qt, 0, o_count, o_ptr, o_touched, n_active, d, d, inverse_mass, k.sizes[GATHER],
+                             serial)
     # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
     # fastest, so neighbouring threads read neighbouring entries of a row.
     ti.loop_config(serialize=serial)
@@ -248,7 +250,7 @@ def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), diagonal: ti.
     _rotations_and_hr(k, o_node, nnz, serial)
     d = 3 * k.sizes[N_TOUCHED]
     ld = d + (3 if inverse_mass != 0.0 else 0)      # Q's row length
-    _translations_and_gather(k, Q, q0, o_count, o_ptr, o_touched, n_active, d, ld, inverse_mass, serial)
+    _translations_and_gather(k, Q, q0, o_count, o_ptr, o_touched, n_active, d, ld, inverse_mass, 1, serial)
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         count = k.jds[o_count + i]
@@ -360,6 +362,7 @@ class WarpedCompliance:
         self._own_polar = solver.fem.rotation != "large"     # else its polar rotations: element_rotations
         self.storage = Storage()                              # this step's scratch: see prepare
         self._ready = False
+        self._gathered = None               # the rows whose Q among their touched nodes Qt holds (add_to)
         self._kept_packs = {}               # the launches' argpacks by kind: see _pack
         # The step's scalars (see WARP), written in place each step.
         self._sizes, self._reals = np.zeros(len(WARP_SIZES), np.int32), np.zeros(len(WARP_REALS), self._np)
@@ -373,6 +376,7 @@ class WarpedCompliance:
         fem = solver.fem
         n = fem.n_nodes
         self.jds = None                  # the next rows are written anew (prepare)
+        self._gathered = None            # and Q gathered anew from the new C0
         if self.source is not None:      # folded only where W needs it (prepare)
             self.source.update()
             self.C0, self.inverse_mass = self.source.C, 0.0
@@ -455,29 +459,28 @@ class WarpedCompliance:
         self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
         self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
         self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
-        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0
+        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0, 1
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
 
     def _pack(self):
         """The argpack of the rotations' and W's launches (WARP), rebuilt only when one of its
         arrays was re-allocated."""
-        valence, incidence = self.solver.fem.model.gather_index()
-        arrays = dict(self._shared(), Re=self._element_rotations, valence=valence, incidence=incidence, U=self.U,
-                      ht=self.ht, Qt=self._Qt)
+        arrays = (*self._shared(), self._element_rotations, *self.solver.fem.model.gather_index(), self.U, self.ht,
+                  self._Qt)
         self._kept_packs["warp"] = kept_pack(self._kept_packs.get("warp"), WARP, arrays)
         return self._kept_packs["warp"][0]
 
     def _correction_pack(self, lam):
         """The correction's argpack (CORRECTION), λ written first."""
-        arrays = dict(self._shared(), lam=self.storage.put("lam", lam, self.real), r0=self.r0, pushed=self.pushed,
-                      x=self.solver.x, v=self.solver.v)
+        arrays = (*self._shared(), self.storage.put("lam", lam, self.real), self.r0, self.pushed, self.solver.x,
+                  self.solver.v)
         self._kept_packs["correction"] = kept_pack(self._kept_packs.get("correction"), CORRECTION, arrays)
         return self._kept_packs["correction"][0]
 
-    def _shared(self) -> dict:
-        return dict(R=self.R, C0=self.C0, rows=self.rows, hr=self.hr, jds=self._jds, value=self._value,
-                    sizes=self._scalars[0], reals=self._scalars[1])
+    def _shared(self) -> tuple:
+        """The arrays of SHARED_MEMBERS, in their order."""
+        return self.R, self.C0, self.rows, self.hr, self._jds, self._value, *self._scalars
 
     def _read_source(self, touched: np.ndarray) -> np.ndarray:
         """C0 from the cutting compliance followed, and per touched node its block of rows in C0.
@@ -518,9 +521,14 @@ class WarpedCompliance:
         if not self.jds.n_active:
             return
         self._sizes[N_ROWS] = W.shape[0]
+        # Q among the touched nodes is gathered again only for other rows (or another C0): at rest
+        # the rows are kept, and Qt still holds it (reading the scattered entries of C0 was about
+        # half the launch's time on the floor scene).
+        self._sizes[GATHER] = self._gathered is not self.jds or self.source is not None
         self.storage.put("sizes", self._sizes, ti.i32)
         flat, in_place = _whole(W)
         _assemble_replayed(self._pack(), flat, self.serial)
+        self._gathered = self.jds
         if not in_place:
             W[...] = flat[:W.size].reshape(W.shape)
         self._ready = True

@@ -39,6 +39,7 @@ the point back past the obstacle. Soft–soft contacts are found at the free pos
 (body, sample, kind, other), so runs are deterministic.
 """
 
+import operator
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -513,6 +514,7 @@ class Detector:
         self._moving = [o.motion is not None for o in self.obstacles]
         self._any_moving = any(self._moving)
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
+        self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
         self._kept_hits = {}                      # per body, its last hits on obstacles (_rigid_hits)
@@ -561,8 +563,10 @@ class Detector:
         poses = [(np.eye(3), np.zeros(3))] * no if poses is None else poses
         previous_poses = poses if previous_poses is None else previous_poses
         packed = self._poses                  # filled in place: the launches replay (tissue.launch)
-        for o, (R, t) in enumerate(poses):
-            packed[o, :9], packed[o, 9:] = R.reshape(-1), t
+        if not all(map(operator.is_, poses, self._packed)):     # (a static obstacle hands one read-only pose)
+            for o, (R, t) in enumerate(poses):
+                packed[o, :9], packed[o, 9:] = R.reshape(-1), t
+            self._packed = tuple(poses)
         parts = []
         sizes = [f.shape[0] for f in fields_]
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
@@ -589,8 +593,8 @@ class Detector:
             return out
         launches = [(others[0] if others else a, self.has_primitives, bool(others))]
         launches += [(b, False, True) for b in others[1:]]
-        own = dict(xa=x, nodes=body.nodes, weights=body.weights, va=x if v is None else v, prm=self._prm,
-                   prm_offsets=self._prm_offsets, prm_bounds=self._prm_bounds, bounds=self._bounds)
+        own = (x, body.nodes, body.weights, x if v is None else v, self._prm, self._prm_offsets, self._prm_bounds,
+               self._bounds)                     # RIGID_MEMBERS
         for k, (b, rigid, soft) in enumerate(launches):
             copy_state = int(v is not None and k == 0)
             if rigid:
@@ -602,27 +606,26 @@ class Detector:
         return out
 
     def _run_soft(self, a, b, own, xb, out, state, alarm, slot, dt, copy_state) -> None:
-        """Body a's launch against body b's surface (`own`: body a's arrays of the launch)."""
+        """Body a's launch against body b's surface (`own`: body a's arrays of the launch, RIGID_MEMBERS)."""
         other = self._bodies[b]
         if other.cell is None:                        # the median triangle extent, at the first call
             tri = xb.to_numpy().astype(np.float64)[other.faces_np]
             other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
         while True:
-            pack = self._pack((a, b), DETECT, dict(own, xb=xb, faces=other.faces, surface=other.surface,
-                                                   vf_offsets=other.vf_offsets, vf=other.vf, normals=other.normals,
-                                                   start=other.start, cursor=other.cursor, ids=ids,
-                                                   grid_i=other.grid_i, grid_f=other.grid_f))
+            pack = self._pack((a, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets, other.vf,
+                                               other.normals, other.start, other.cursor, ids, other.grid_i,
+                                               other.grid_f))     # SOFT_MEMBERS
             _detect_soft_replayed(pack, out, state, other.cell + 2 * alarm, alarm, slot, dt, copy_state, self.serial)
             needed = int(out[-1, slot, 0])
             if needed <= ids.shape[0]:
                 return
             ids = self.storage.get(b, needed, ti.i32)          # grow and redo (rare)
 
-    def _pack(self, pair, kind, arrays: dict):
-        """The launch's argpack (`kind`) for the body pair `pair` (b None: the obstacles), rebuilt
-        only when one of its arrays is another object (a grown grid, new bodies): the same pack
-        step after step replays."""
+    def _pack(self, pair, kind, arrays: tuple):
+        """The launch's argpack (`kind`, its arrays in its members' order) for the body pair `pair`
+        (b None: the obstacles), rebuilt only when one of its arrays is another object (a grown
+        grid, new bodies): the same pack step after step replays."""
         kept = self._packs[pair] = kept_pack(self._packs.get(pair), kind, arrays)
         return kept[0]
 

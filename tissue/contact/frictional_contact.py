@@ -21,9 +21,10 @@ the 1 + keeps it defined for q = 0.)
 
 Methods (each in its module; this one validates, uploads and dispatches):
   * "auto" (the contact stage's default): Gauss-Seidel over the whole problem while it makes
-    progress (every AUTO_PHASE sweeps, AUTO_PHASE_LARGE from AUTO_LARGE contacts on, at least
-    halve the residual, at a rate that reaches the tolerance within AUTO_HORIZON sweeps, at most
-    AUTO_SWEEPS of them, one launch), then "newton" from where it stopped. Warm-started
+    progress (every AUTO_PHASE sweeps, AUTO_PHASE_LARGE from AUTO_LARGE contacts on and
+    AUTO_PHASE_SMALL below AUTO_SMALL, at least halve the residual, at a rate that reaches the
+    tolerance within AUTO_HORIZON sweeps, at most AUTO_SWEEPS of them (AUTO_SWEEPS_SMALL below
+    AUTO_SMALL), one launch), then "newton" from where it stopped. Warm-started
     problems of a few hundred rows mostly end within the sweeps, at microseconds each; the rest
     (many strongly coupled contacts, often more rows than the dofs they move: the press plate's
     2,382-3,465 rows, where a sweep gains ~1 % of the residual) end in a few Newton steps
@@ -77,6 +78,12 @@ AUTO_HORIZON = 100                # AUTO_SWEEPS, then Newton (Anderson's sweeps 
 AUTO_LARGE, AUTO_PHASE_LARGE = 1000, 4  # ... phases of 4 sweeps from 1,000 contacts on, where a sweep
                                         # costs tens of ms (the press plate's 1,155 contacts, factored: ~20),
                                         # the rate's horizon AUTO_SWEEPS
+AUTO_SMALL, AUTO_PHASE_SMALL, AUTO_SWEEPS_SMALL = 32, 64, 256   # ... and below 32 contacts phases of 64,
+                                        # at most 256 sweeps (the rate's horizon): a sweep costs a few µs
+                                        # there, Newton's host step hundreds (the floor scene's 12 contacts:
+                                        # 1-2 µs a sweep; 14 of 72 steps fell back, at 0.5-1.5 ms each), and
+                                        # where 16 sweeps did not halve the residual, 72-223 reached the
+                                        # tolerance
 
 
 @dataclass
@@ -107,8 +114,8 @@ def _diagonal_blocks(W, n, sparse: bool):
         D = np.zeros((n, 3, 3))
         np.add.at(D, rows[on], B.data[on])
         return D
-    idx = np.arange(n)
-    return W.reshape(n, 3, n, 3)[idx, :, idx, :]
+    # A view [i, a, b] = W[3i + a, 3i + b] (gathering them by fancy indexing cost several times more)
+    return np.diagonal(W.reshape(n, 3, n, 3), axis1=0, axis2=2).transpose(2, 0, 1)
 
 
 class FrictionalContactSolver:
@@ -388,12 +395,17 @@ class FrictionalContactSolver:
     def _auto(self, max_iterations, tol_abs):
         """Gauss-Seidel over the whole problem (most warm-started problems end within a few dozen
         sweeps, at a few µs a sweep) while every AUTO_PHASE sweeps (AUTO_PHASE_LARGE on large
-        problems, where sweeps cost more than Newton's first steps) at least halve the residual, at
-        a rate that reaches the tolerance within AUTO_HORIZON sweeps (AUTO_SWEEPS on large
-        problems), at most AUTO_SWEEPS, in one launch; then Newton from where it stopped (the
-        problems whose sweeps crawl: many coupled contacts, W ill-conditioned or singular)."""
+        problems, where sweeps cost more than Newton's first steps; AUTO_PHASE_SMALL on small ones,
+        where they cost far less) at least halve the residual, at a rate that reaches the tolerance
+        within AUTO_HORIZON sweeps (AUTO_SWEEPS on large problems, AUTO_SWEEPS_SMALL on small
+        ones), at most AUTO_SWEEPS (AUTO_SWEEPS_SMALL), in one launch; then Newton from where it
+        stopped (the problems whose sweeps crawl: many coupled contacts, W ill-conditioned or
+        singular)."""
         cap = min(AUTO_SWEEPS, max_iterations)
-        if self.n < AUTO_LARGE:
+        if self.n < AUTO_SMALL:
+            cap = min(AUTO_SWEEPS_SMALL, max_iterations)
+            its = self._sweeps(cap, tol_abs, AUTO_PHASE_SMALL, cap)
+        elif self.n < AUTO_LARGE:
             its = self._sweeps(cap, tol_abs, AUTO_PHASE, min(AUTO_HORIZON, max_iterations))
         else:
             its = self._sweeps(cap, tol_abs, AUTO_PHASE_LARGE)

@@ -207,9 +207,9 @@ class ContactStage:
         self._storages = [self.detector.storage, self._lcp]
         self._storages += [c.storage for c in self.compliance if isinstance(c, WarpedCompliance)]
         self.time = 0.0
-        self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
-        self._last_sweeps = 0
+        self._forget_warm_start()
         self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
+        self._frictionless = (None, None)       # a μ per contact, and where it is 0 (_solve)
         self._kept = None                       # the last rows' Jacobian (_jacobian)
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
@@ -236,8 +236,7 @@ class ContactStage:
             self.compliance[b].follow_edits()
         self._edited.clear()
         self._held_nodes()
-        self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
-        self._last_sweeps = 0
+        self._forget_warm_start()
         self._kept = None
 
     def follow_compliance(self, body: int, compliance) -> None:
@@ -349,8 +348,7 @@ class ContactStage:
                 [b.solver.x for b in self.bodies], s.distance, self._poses(self.time),
                 self._poses(self.time - h), velocities=[b.solver.v for b in self.bodies], dt=h))
         if not len(contacts) and not self.attachments:
-            self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
-            self._last_sweeps = 0
+            self._forget_warm_start()
             self.last = ContactResult(contacts, dt=h)
             for name in ("constraints", "compliance", "lcp", "correction"):   # one entry per step each
                 stats.times[name].append(0.0)
@@ -394,8 +392,7 @@ class ContactStage:
                 self.compliance[b].correct(lam)
 
         nc = rows.n_contacts
-        self._warm_keys = keys
-        self._warm_impulses = np.einsum("ki,kij->kj", lam[:3 * nc].reshape(-1, 3), rows.frames)
+        self._warm_keys, self._warm = keys, (rows.frames, lam[:3 * nc].reshape(-1, 3).copy())
         self.last = ContactResult(contacts, rows, W, lam, info, h)
         normal = self._gaps[0::3]                               # δ_n after the correction
         stats.count(contacts=nc, rows=rows.n_rows, gs_iterations=info.iterations if info else 0,
@@ -403,6 +400,11 @@ class ContactStage:
                     penetration=float(max(0.0, -normal.min())) if nc else 0.0,
                     contact_storage_growths=self.storage_growths)
         return self.last
+
+    def _forget_warm_start(self) -> None:
+        """No reactions to start the next step's problem from (no contacts, or after an edit)."""
+        self._warm_keys, self._warm = np.zeros(0, np.int64), (np.zeros((0, 3, 3)), np.zeros((0, 3)))
+        self._last_sweeps = 0
 
     def _keys(self, contacts: Contacts) -> np.ndarray:
         """contacts.keys(): the kept rows' when detection handed last step's arrays they are made
@@ -513,7 +515,9 @@ class ContactStage:
             # The problem on W / w̄ (w̄ the mean of its diagonal). Frictionless contacts have empty
             # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
             # (with μ = 0 it never uses them: r_t = 0).
-            t = np.flatnonzero(mu == 0)
+            if self._frictionless[0] is not mu:             # (μ is the kept rows' at rest)
+                self._frictionless = (mu, np.flatnonzero(mu == 0))
+            t = self._frictionless[1]
             if factored:
                 D = W.diagonal.copy()
                 D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
@@ -530,15 +534,23 @@ class ContactStage:
                 for j in (1, 2) if len(t) else ():
                     scaled[3 * t + j, 3 * t + j] = scaled[3 * t, 3 * t]
             keys = contacts.keys() if keys is None else keys
-            if _same_bits(self._warm_keys, keys):            # the same contacts as last step (at rest)
-                warm = np.einsum("kij,kj->ki", rows.frames, self._warm_impulses)
+            # From last step's reactions, by contact: as they are where the contacts and their
+            # frames are last step's (the rows kept, at rest), else turned into this step's frames.
+            frames, local = self._warm
+            same = _same_bits(self._warm_keys, keys)
+            if same and rows.frames is frames:
+                warm = local
             else:
-                warm = np.zeros((rows.n_contacts, 3))
-                if len(self._warm_keys):
-                    pos = np.searchsorted(self._warm_keys, keys)
-                    pos = np.minimum(pos, len(self._warm_keys) - 1)
-                    hit = self._warm_keys[pos] == keys
-                    warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], self._warm_impulses[pos[hit]])
+                impulses = np.einsum("ki,kij->kj", local, frames)          # in the world frame
+                if same:
+                    warm = np.einsum("kij,kj->ki", rows.frames, impulses)
+                else:
+                    warm = np.zeros((rows.n_contacts, 3))
+                    if len(self._warm_keys):
+                        pos = np.searchsorted(self._warm_keys, keys)
+                        pos = np.minimum(pos, len(self._warm_keys) - 1)
+                        hit = self._warm_keys[pos] == keys
+                        warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], impulses[pos[hit]])
             reduce = self._last_sweeps > REDUCE_ABOVE
             solver = self._solver
             if solver is None or solver.method != s.method:

@@ -113,6 +113,10 @@ DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERA
 # level of nesting: measured here, a nested pack cost ~30 % more than a flat one in such loops.
 STEP_MEMBERS = (*MODEL.members, *FEM_WORK.members, *STATE_MEMBERS, *BLOCKS.members, *MULTIGRID_MEMBERS)
 STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS})
+# The same less the multigrid's members, for the serial step of the other schemes: Taichi's CPU
+# launcher sets every ndarray of a pack at each launch, replayed or not (~0.35 µs each).
+PLAIN_STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS
+                                 if name not in MULTIGRID_MEMBERS})
 BLOCK_MEMBERS = tuple(BLOCKS.members)
 # Nodes per block of the partial sums (dot products summed in a fixed order: bit-identical reruns).
 BLOCK = 1024
@@ -196,7 +200,7 @@ class ImplicitEuler:
         self._nodes = 0                # the model's nodes that the state holds
         self._node_staging = None      # set_nodes' host rows
         self.allocations = 0           # state allocations: 1, plus one per growth of the model
-        self._pack = None
+        self._packs = {}               # the launches' argpacks by kind (STEP, PLAIN_STEP): see _step_pack
         self.multigrid = None
         self.parameters = parameters
         self._checked_material = None     # the material check_regime last passed
@@ -307,14 +311,16 @@ class ImplicitEuler:
         if self.multigrid is not None:
             self.multigrid.rebuild()
 
-    def _step_pack(self):
-        """The argpack of a launch, rebuilt only when one of its arrays was re-allocated."""
+    def _step_pack(self, kind=STEP):
+        """The argpack of a launch (STEP, or PLAIN_STEP without the multigrid's arrays), rebuilt
+        only when one of its arrays was re-allocated."""
         self._resize()
         arrays = {**self.model.arrays, **self.fem.work_arrays, **self.arrays,
-                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCK_MEMBERS)),
-                  **(self.multigrid.arrays if self.multigrid is not None else _unused(MULTIGRID_MEMBERS))}
-        self._pack = kept_pack(self._pack, STEP, arrays)
-        return self._pack[0]
+                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCK_MEMBERS))}
+        if kind is STEP:
+            arrays.update(self.multigrid.arrays if self.multigrid is not None else _unused(MULTIGRID_MEMBERS))
+        kept = self._packs[kind] = kept_pack(self._packs.get(kind), kind, arrays)
+        return kept[0]
 
     # ---- state at the numpy boundary --------------------------------------------------------
 
@@ -431,11 +437,13 @@ class ImplicitEuler:
 
     def step(self) -> None:
         """Advance one time step; raises TissueError if the state became non-finite."""
-        k, o, tol = self.prepare_step()
         if self.execution == "serial" and not self.split_stages:
+            plain = self.multigrid is None          # (the multigrid's V-cycle reads its arrays)
+            k, o, tol = self.prepare_step(PLAIN_STEP if plain else STEP)
             with self.stats.stage("step"):
-                SERIAL(k, o, "step", tol)
+                (PLAIN_SERIAL if plain else SERIAL)(k, o, "step", tol)
         else:
+            k, o, tol = self.prepare_step()
             with self.stats.stage("rotations+forces"):
                 if self.execution == "serial":
                     SERIAL(k, o, "begin", tol)
@@ -462,13 +470,13 @@ class ImplicitEuler:
         return (scalars[ITERATION], scalars[RES2], scalars[RHS2], scalars[BREAKDOWN], scalars[NONFINITE],
                 inverted[0])
 
-    def prepare_step(self):
-        """What a step's launches take: (the argpack, the scheme, the rotations' tolerance), after
-        the regime check a changed material needs (a caller fusing more into the serial launch,
-        tissue.solver.step_control, takes the step through this and `record_step`)."""
+    def prepare_step(self, kind=STEP):
+        """What a step's launches take: (the argpack of `kind`, the scheme, the rotations'
+        tolerance), after the regime check a changed material needs (a caller fusing more into the
+        serial launch, tissue.solver.step_control, takes the step through this and `record_step`)."""
         if self._checked_material is not self.model.material:
             self.check_regime()
-        return self._step_pack(), self.scheme, self.fem.rotation_tolerance
+        return self._step_pack(kind), self.scheme, self.fem.rotation_tolerance
 
     def record_step(self, report) -> None:
         """Count the step's CG report (`report`) in the stats; warn of inverted elements once;
@@ -874,22 +882,28 @@ def _end_parallel(k: STEP, o: ti.template()):
     _end(k)
 
 
-@compilation.without_ir_passes(_multigrid)
-@ti.kernel
-def _serial(k: STEP, o: ti.template(), part: ti.template(), tol: ti.f64):
-    """The whole step ("step"), or its "begin" (up to the right-hand side) or "solve" (the CG) part,
-    in one CPU thread. The report stays in the arrays (ImplicitEuler.report)."""
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        if ti.static(part != "solve"):
-            _begin(k, o, tol)
-        if ti.static(part != "begin"):
-            _solve_serial(k, o)
-            _end(k)
+def _serial_kernel(pack):
+    """The serial step's kernel over argpacks of `pack` (STEP; PLAIN_STEP for the schemes that read
+    no multigrid)."""
+    @compilation.without_ir_passes(_multigrid)
+    @ti.kernel
+    def _serial(k: pack, o: ti.template(), part: ti.template(), tol: ti.f64):
+        """The whole step ("step"), or its "begin" (up to the right-hand side) or "solve" (the CG)
+        part, in one CPU thread. The report stays in the arrays (ImplicitEuler.report)."""
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            if ti.static(part != "solve"):
+                _begin(k, o, tol)
+            if ti.static(part != "begin"):
+                _solve_serial(k, o)
+                _end(k)
+
+    return _serial
 
 
-SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (
-    replayed(kernel) for kernel in (_serial, _begin_parallel, _iterate_parallel, _end_parallel))
+SERIAL, PLAIN_SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (
+    replayed(kernel) for kernel in (_serial_kernel(STEP), _serial_kernel(PLAIN_STEP), _begin_parallel,
+                                    _iterate_parallel, _end_parallel))
 
 
 @ti.kernel
