@@ -49,7 +49,7 @@ _current: Backend | None = None
 
 def _cuda_driver_loads() -> bool:
     """Whether the CUDA driver library loads, which Taichi opens by this name (its CUDADriver):
-    where it does not, "auto" is the CPU without a trial start of Taichi on CUDA (0.1 s)."""
+    where it does not, "auto" is the CPU without a trial start of Taichi on CUDA."""
     import ctypes
 
     try:
