@@ -359,3 +359,24 @@ def test_stomach_implicit_is_exact_near_the_surface_and_keeps_its_sign_beyond():
     assert 0.1 < near.mean() < 0.9 and (plain < 0).any()
     assert np.array_equal(value[near], plain[near])
     assert (value[~near] > organs._SIGN_ONLY).all()
+
+
+def test_colon_implicit_is_exact_near_the_surface_and_keeps_its_sign_beyond():
+    """The colon's implicit evaluates its formula (`_colon_value`) only where a lower bound says it
+    can reach marching cubes: against the formula at every point, values agree exactly wherever the
+    formula's value is within organs._SIGN_ONLY of the surface or inside, and elsewhere both are
+    beyond _SIGN_ONLY."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(6)
+    p = rng.uniform((-0.17, -0.07, -0.27), (0.17, 0.06, -0.14), (60_000, 3))
+    curve, s = organs._sample_curve(organs._COLON_CENTRELINE, 800)
+    plain = organs._colon_value(p, cKDTree(curve), curve, s)
+    value = organs._colon_implicit(p)
+    near = plain <= organs._SIGN_ONLY
+    assert 0.1 < near.mean() < 0.9 and (plain < 0).any()
+    assert np.array_equal(value[near], plain[near])
+    assert (value[~near] > organs._SIGN_ONLY).all()
+    # The radius (the distance to the centreline less the value) reaches the bound's largest, no more.
+    radius = np.linalg.norm(p - curve[cKDTree(curve).query(p)[1]], axis=1) - plain
+    assert 0.99 * organs._COLON_RADIUS_MAX < radius.max() <= organs._COLON_RADIUS_MAX

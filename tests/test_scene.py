@@ -162,6 +162,18 @@ def test_fixed_count_spreads_and_radius_grows_patches():
     assert explicit.tolist() == [0, 5]
 
 
+def test_radius_patches_are_the_k_d_trees_ball_query():
+    """The nodes a patch holds: those scipy's k-d tree finds within the radius of each chosen node."""
+    from scipy.spatial import cKDTree
+
+    points = np.random.default_rng(3).uniform(-0.1, 0.1, (5000, 3))
+    fixed = Fixed(region=(0.0, 1.0, 0.0, 1.0, 0.8, 1.0), count=4, radius=0.03)
+    chosen = held_nodes(points, Fixed(region=fixed.region, count=4))
+    expected = np.unique(np.concatenate([chosen, *map(np.asarray, cKDTree(points).query_ball_point(points[chosen], 0.03))]))
+    assert 4 < len(expected) < 1000
+    assert np.array_equal(held_nodes(points, fixed), expected)
+
+
 def test_fixed_errors_name_the_field():
     mesh = box(size=(1, 1, 1), cells=(2, 2, 2))
     with pytest.raises(TissueError, match=r"^beam.fixed.nodes: ids \[999\] out of range"):

@@ -47,8 +47,22 @@ class Backend:
 _current: Backend | None = None
 
 
+def _cuda_driver_loads() -> bool:
+    """Whether the CUDA driver library loads, which Taichi opens by this name (its CUDADriver):
+    where it does not, "auto" is the CPU without a trial start of Taichi on CUDA."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("nvcuda.dll" if os.name == "nt" else "libcuda.so")
+    except OSError:
+        return False
+    return True
+
+
 def _resolve_arch(name: str):
     if name == "auto":
+        if not _cuda_driver_loads():
+            return ti.cpu
         try:
             ti.init(arch=ti.cuda, offline_cache=True, log_level=ti.ERROR)
             ok = ti.lang.impl.current_cfg().arch == ti.cuda

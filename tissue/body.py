@@ -117,10 +117,10 @@ def held_nodes(points: np.ndarray, fixed: Fixed, name: str = "body") -> np.ndarr
         if 0 < fixed.count < len(inside):
             inside = _spread(points[inside], inside, lo + r.mean(axis=1) * (hi - lo), fixed.count)
         if fixed.count > 0 and fixed.radius > 0:
-            from scipy.spatial import cKDTree
-
-            near = cKDTree(points).query_ball_point(points[inside], fixed.radius)
-            inside = np.unique(np.concatenate([inside] + [np.asarray(n, dtype=np.int64) for n in near]))
+            # The nodes within `radius` of each of a few chosen ones, by their distances to each: a
+            # k-d tree's answer, without importing scipy.spatial for it at every start.
+            near = [np.flatnonzero(np.sum((points - points[i]) ** 2, axis=1) <= fixed.radius ** 2) for i in inside]
+            inside = np.unique(np.concatenate([inside] + near))
         chosen.append(inside)
     return np.unique(np.concatenate(chosen)).astype(np.int64)
 
