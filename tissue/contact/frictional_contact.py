@@ -60,7 +60,7 @@ from ..errors import TissueError
 from . import gauss_seidel, jacobi, newton
 from .cone import _error2_numpy, natural_map_residual, project_cone
 from .delassus import FactoredDelassus
-from .layouts import CSR, DELASSUS, DENSE, FACTORED, PROBLEM
+from .layouts import CSR, DELASSUS, DENSE, FACTORED, IN_PLAY_MAX, PROBLEM
 from .storage import Storage
 
 METHODS = ("gauss_seidel", "jacobi", "newton", "auto")
@@ -240,11 +240,12 @@ class FrictionalContactSolver:
         st.put("mu", self.mu, real)
         if n != size:
             st.put("sizes", np.array([n, window, 0, 0, 0]), ti.i32)
-        # W in its layout (see tissue.contact.layouts), the factored layout's y and z (one element
-        # elsewhere), its sizes and its scale.
+        # W in its layout (see tissue.contact.layouts), the factored layout's y and z and its
+        # scratch for W among the contacts in play (one element elsewhere), its sizes and its scale.
         none = st.get("none", 1, real)
-        y = z = none
-        dims, scale = [0, 0], 1.0
+        y = z = dense = none
+        active = st.get("none_int", 1, ti.i32)
+        dims, scale = [0, 0, 0], 1.0
         if self.layout == DENSE:
             W = self.W if isinstance(self.W, np.ndarray) else self.W.toarray()
             kept = st.get("W", m * m, real)
@@ -260,13 +261,18 @@ class FrictionalContactSolver:
         else:
             W = self.W
             abc = (st.put("index", W.packed(), ti.i32), st.put("blocks", W.blocks, real, (3, 3)), st.put("Q", W.Q, real))
-            y, z = (st.get(name, max(1, int(W.y_offset[-1])), real) for name in ("y", "z"))
-            dims, scale = [len(W.blocks), len(W.y_offset) - 1], float(W.scale)
+            dofs = max(1, int(W.y_offset[-1]))
+            y, z = (st.get(name, dofs, real) for name in ("y", "z"))
+            room = min(n, IN_PLAY_MAX)
+            active = st.get("active", n + room + 1, ti.i32)
+            dense = st.get("dense", 9 * room * room + 3 * dofs, real)
+            dims, scale = [len(W.blocks), len(W.y_offset) - 1, room], float(W.scale)
         if (self.layout, dims, scale) != kept_W:
             st.put("dims", np.array(dims), ti.i32)
             st.put("scale", np.array([scale]), real)
         self._W = st.pack(f"delassus {self.layout}", DELASSUS, a=abc[0], b=abc[1], c=abc[2],
-                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, dims=st.get("dims", 2, ti.i32),
+                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, active=active, dense=dense,
+                          dims=st.get("dims", 3, ti.i32),
                           scale=st.get("scale", 1, real))
         self._uploaded = (n, (self.layout, dims, scale))
 
