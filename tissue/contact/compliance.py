@@ -446,18 +446,25 @@ class WarpedCompliance:
         if jds is self.jds and self.source is None:
             return
         self.jds = jds
-        d, real, storage = 3 * len(jds.touched), self.real, self.storage
+        real, storage = self.real, self.storage
         blocks = self._read_source(jds.touched) if self.source is not None else jds.touched
         self.rows = storage.put("rows", blocks, ti.i32)
         self._jds = storage.put("jds", jds.packed, ti.i32)
         self._value = storage.put("value", jds.value, ti.types.matrix(3, 3, real))
         self.hr = storage.get("hr", jds.nnz, ti.types.matrix(3, 3, real))          # (H R) per block
-        self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
         self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
-        self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
+        self._scratch_for_W(1, 1)                   # sized by add_to, the one launch that writes them
         self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
+
+    def _scratch_for_W(self, n_u: int, n_qt: int) -> None:
+        """U (Q Hrᵀ per (row, dof)) and Qt (Q among the touched dofs) with room for n_u and n_qt
+        entries: only forming W writes them (W's factors go to the stage's buffers), so a stage
+        that keeps W as its factors does not grow them step after step, nor rebuild the launches'
+        argpack and record their launches again each time."""
+        self.U = self.storage.get("U", n_u, ti.types.vector(3, self.real))
+        self._Qt = self.storage.get("Qt", n_qt, self.real)
 
     def _pack(self):
         """The argpack of the rotations' and W's launches (WARP), rebuilt only when one of its
@@ -519,6 +526,8 @@ class WarpedCompliance:
             return
         self._sizes[N_ROWS] = W.shape[0]
         self.storage.put("sizes", self._sizes, ti.i32)
+        d = 3 * len(self.jds.touched)
+        self._scratch_for_W(self.jds.n_active * d, d * d)
         flat, in_place = _whole(W)
         _assemble_replayed(self._pack(), flat, self.serial)
         if not in_place:

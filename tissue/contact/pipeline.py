@@ -317,11 +317,12 @@ class ContactStage:
         """A numpy buffer of at least n rows (of `shape`) kept between steps, whole: the same
         memory each step, so the launches writing it replay (tissue.launch). Two sets alternate
         from step to step (`_flip`), so what a step hands out (W, its factors) stays valid until
-        the step after next."""
+        the step after next. First made with room for 4n (a press's contacts grow several-fold
+        from the first), then doubled: each new buffer records the launches over it again."""
         buffers = self._buffers[self._flip]
         buf = buffers.get(name)
         if buf is None or len(buf) < n or buf.dtype != dtype:
-            buf = buffers[name] = np.empty((max(n, 2 * len(buf) if buf is not None else n, 1),) + shape, dtype)
+            buf = buffers[name] = np.empty((max(n, 2 * len(buf) if buf is not None else 4 * n, 1),) + shape, dtype)
         return buf
 
     def _delassus_buffer(self, n: int, dtype) -> np.ndarray:
