@@ -186,6 +186,7 @@ class FrictionalContactSolver:
                 raise TissueError(f"W: diagonal 3x3 block of contact {bad[0]} is not positive definite"
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
         self.n, self.W, self.mu, self._D_host = n, W, mu, D
+        self._swept = False             # the sweeps' W among the contacts in play is this problem's
         self.reduce = bool(reduce) and self.method == "gauss_seidel"      # (auto sweeps the whole problem)
         layout = self._layout
         dense = layout == "dense" or (layout == "auto" and (
@@ -341,7 +342,22 @@ class FrictionalContactSolver:
         gauss_seidel.run); sets self._last_error2 and self._stalled."""
         its, self._last_error2, self._stalled = gauss_seidel.run(self.layout, self._W, self._P, max_iterations,
                                                                  tol_abs, stall, horizon)
+        self._swept = True
         return its
+
+    def _formed_block(self, rows, cols) -> np.ndarray | None:
+        """W between contacts `rows` and `cols` (ids) from W among the contacts in play that this
+        problem's last sweeps formed (FACTORED, on the host; see gauss_seidel), when it holds
+        them all; else None."""
+        if not (self.layout == FACTORED and self._swept and self.storage.host):
+            return None
+        room = min(self.n, IN_PLAY_MAX)
+        slot = self.storage.get("active", self.n + room + 1, ti.i32)[:self.n]
+        a, b = slot[rows], slot[cols]
+        if room == 0 or (a < 0).any() or (b < 0).any():
+            return None
+        dense = self.storage.get("dense", 9 * room * room, self._npr)[:9 * room * room].reshape(3 * room, 3 * room)
+        return dense[_dofs(a)][:, _dofs(b)]
 
     def _gauss_seidel(self, max_iterations, tol_abs):
         """Without `reduce`: sweeps over the whole problem, in one launch. With it: sweeps on the
@@ -426,9 +442,11 @@ class FrictionalContactSolver:
         return its
 
     def _block(self, rows, cols) -> np.ndarray:
-        """W between contacts `rows` and `cols` (ids), dense."""
+        """W between contacts `rows` and `cols` (ids), dense (FACTORED: read from W among the
+        contacts in play where the sweeps formed it, else from the factors)."""
         if self.layout == FACTORED:
-            return self.W.block(rows, cols)
+            formed = self._formed_block(rows, cols)
+            return formed if formed is not None else self.W.block(rows, cols)
         r, c = _dofs(rows), _dofs(cols)
         if sp.issparse(self.W):                     # (also a small sparse W held densely)
             return self.W[r][:, c].toarray()
