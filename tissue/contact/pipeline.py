@@ -211,6 +211,7 @@ class ContactStage:
         self._last_sweeps = 0
         self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
         self._kept = None                       # the last rows' Jacobian (_jacobian)
+        self._factors_before = {}               # per body, its last step's factor of W (_factored)
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
         self._real, self._np = real, (np.float64 if real == ti.f64 else np.float32)
@@ -238,13 +239,14 @@ class ContactStage:
         self._held_nodes()
         self._warm_keys, self._warm_impulses = np.zeros(0, np.int64), np.zeros((0, 3))
         self._last_sweeps = 0
-        self._kept = None
+        self._kept, self._factors_before = None, {}
 
     def follow_compliance(self, body: int, compliance) -> None:
         """Take body `body`'s rest compliance from a tissue.cutting.CuttingCompliance (kept exact
         through its cuts by low-rank updates) instead of inverting it anew after each cut."""
         self.compliance[body].follow(compliance)
         self._kept = None                       # (its factor's size may change: _KeptRows.factors_pay)
+        self._factors_before = {}
 
     # ---- queries ------------------------------------------------------------------------------
 
@@ -372,6 +374,7 @@ class ContactStage:
             if s.compliance == "warped" and kept.factors_pay(self):
                 W = self._factored(rows, touched, jds)
             elif s.compliance == "warped":
+                self._factors_before = {}
                 W = self._delassus_buffer(rows.n_rows, self._np)
                 for b in touched:
                     c = self.compliance[b]
@@ -484,9 +487,15 @@ class ContactStage:
         Q = self._buffer("Q", total, self._np)
         diagonal = self._buffer("diagonal", n_block_rows, self._np, (3, 3))
         diagonal[:n_block_rows] = 0.0
-        start = 0
+        start, before = 0, self._factors_before
+        self._factors_before = {}
         for k, b in enumerate(touched):
-            self.compliance[b].factor(blocks, Q, diagonal, pos, int(q_offset[k]), start)
+            c = self.compliance[b]
+            if isinstance(c, WarpedCompliance):
+                c.factor(blocks, Q, diagonal, pos, int(q_offset[k]), start, before.get(b))
+                self._factors_before[b] = (Q, int(q_offset[k]), jds[b].touched)
+            else:
+                c.factor(blocks, Q, diagonal, pos, int(q_offset[k]), start)
             start += len(parts[k][0])
         ptr = offsets(np.bincount(row, minlength=n_block_rows))
         return FactoredDelassus(ptr, col[order], segment[order], blocks[:len(row)].astype(np.float64, copy=False),
