@@ -10,7 +10,9 @@ sweep say "converged" (plus at the start, which lets a warm start that already s
 problem cost 0 sweeps). Between two residual checks a sweep passes over the contacts that carry
 nothing and were apart (u_n > 0) when last solved, but for every REVISIT_EVERY-th sweep: the check
 sees them all again, so the stopping rule is unchanged, and most contacts within an alarm distance
-never touch (the pressed liver: ~140 of ~155).
+never touch (the pressed liver: ~140 of ~155). With W kept as its factors, those sweeps read W
+formed among the contacts in play (layouts._join_play, up to IN_PLAY_MAX of them) instead of
+keeping y = Q Pᵀ r through every dof their nodes move; the same sweeps, rounding aside.
 
 Anderson acceleration (window m = the history's size, see `history_shape`): a sweep is a
 fixed-point map r <- G(r); after each sweep the next start is the combination of the last m + 1
