@@ -942,6 +942,38 @@ def test_stage_factors_equal_the_assembled_warped_W(damped_block):
     np.testing.assert_allclose(r.gaps, r.rows.q + W @ r.impulses, atol=1e-12)
 
 
+def test_factor_copies_last_steps_compliance_between_nodes_touched_both_times(cantilever):
+    """WarpedCompliance.factor takes A₀⁻¹ among the touched nodes from the last step's factor where
+    both nodes were touched then (`before`), from A₀⁻¹ itself elsewhere: the factors equal, bit for
+    bit, those gathered whole, for rows touching some of the same nodes and some others."""
+    from tissue.contact.constraints import JaggedDiagonal, build_rows
+
+    solver, warped, _ = cantilever
+    x = solver.fem.mesh.points
+    solver.set_state(x, np.zeros_like(x))
+    solver.fem.rotations_numpy(x)
+
+    def factors(contacts, before=None, q_offset=0):
+        jds = JaggedDiagonal(build_rows(contacts, [x], [x]), 0)
+        warped.prepare(jds)
+        d, rows = 3 * len(jds.touched), len(contacts)
+        P, Q = np.zeros((jds.nnz, 3, 3)), np.full(q_offset + d * d, np.nan)
+        diagonal, pos = np.zeros((rows, 3, 3)), np.arange(jds.nnz, dtype=np.int32)
+        warped.factor(P, Q, diagonal, pos, q_offset, 0, before)
+        return jds.touched, (P, Q[q_offset:], diagonal)
+
+    first, second = _surface_contacts(solver, 20, seed=1), _surface_contacts(solver, 20, seed=2)
+    touched, (_, Q1, _) = factors(first, q_offset=7)
+    fresh_touched, fresh = factors(second)
+    both = np.isin(fresh_touched, touched)
+    assert 0 < both.sum() < len(both)                      # some nodes touched again, some new
+    _, copied = factors(second, before=(np.r_[np.zeros(7), Q1], 7, touched))
+    for a, b in zip(copied, fresh):
+        assert np.array_equal(a, b)
+    _, again = factors(second)                              # (no `before`: gathered whole, as first)
+    assert np.array_equal(again[1], fresh[1])
+
+
 def test_kept_rows_of_a_large_body_are_warped_with_this_steps_rotations(cantilever):
     """The stage hands a WarpedCompliance last step's JDS when the contacts are kept; for a "large"
     body the polar rotations it warps with are still this step's (x − h v): W after the state

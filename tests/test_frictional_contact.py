@@ -340,6 +340,59 @@ def test_factored_delassus_matches_dense(solve, method):
     np.testing.assert_allclose(rf, rd, atol=10 * tol * (1 + np.linalg.norm(q)))
 
 
+@pytest.mark.parametrize("room", [64, 16, 0])
+def test_factored_sweeps_in_play_match_dense(backend, monkeypatch, room):
+    """The factored layout's sweeps that pass over the contacts apart read W formed among the
+    contacts in play (up to IN_PLAY_MAX of them; beyond that room, or with none, y through the
+    factors): the same sweeps as on the dense W built from the bodies, rounding aside, on a problem
+    where few contacts touch (17 come into play here: room for 16 runs out mid-solve)."""
+    from tissue.contact import frictional_contact
+    from tissue.contact.frictional_contact import FrictionalContactSolver
+
+    monkeypatch.setattr(frictional_contact, "IN_PLAY_MAX", room)
+    W, F, q, mu = two_body_factored_problem(90, 60, np.random.default_rng(6))
+    q = q.reshape(-1, 3)
+    q[:, 0] = np.random.default_rng(7).uniform(-0.2, 1.0, len(q))
+    q = q.ravel()
+    tol, n = 1e-8, len(mu)
+    factored = FrictionalContactSolver(F, mu, "gauss_seidel", check=False)
+    rf, info = factored.solve(q, tol, 5000)
+    rd, idn = FrictionalContactSolver(W, mu, "gauss_seidel", check=False).solve(q, tol, 5000)
+    in_play = int(factored.storage._arrays["active"][n + min(n, room)]) if room else 0
+    _report(f"factored, room {room} ({in_play} formed)", info, n)
+    assert in_play == {64: 17, 16: 16, 0: 0}[room]
+    assert info.iterations > 2 * 8                 # (sweeps over all contacts among them)
+    assert info.converged and natural_map(W, q, mu, rf) <= tol
+    assert abs(idn.iterations - info.iterations) <= 2
+    np.testing.assert_allclose(rf, rd, atol=10 * tol * (1 + np.linalg.norm(q)))
+
+
+def test_newton_reads_W_among_the_contacts_in_play_the_sweeps_formed(backend):
+    """Newton's blocks of a factored W (its closing contacts are in play) come from W among the
+    contacts in play that the sweeps before it formed, where that holds them all, else from the
+    factors: both equal the dense W built from the bodies; a renewed problem's are not reused."""
+    from tissue.contact.frictional_contact import FrictionalContactSolver
+
+    W, F, q, mu = two_body_factored_problem(90, 60, np.random.default_rng(6))
+    q = q.reshape(-1, 3)
+    q[:, 0] = np.random.default_rng(7).uniform(-0.2, 1.0, len(q))
+    q = q.ravel()
+    solver = FrictionalContactSolver(F, mu, "gauss_seidel", check=False)
+    assert solver._formed_block(np.arange(2), np.arange(2)) is None        # no sweeps yet
+    r, _ = solver.solve(q, 1e-8, 5000)
+    play = np.flatnonzero((r.reshape(-1, 3) != 0).any(axis=1))
+    rows, cols = play[::-1], play[::2]
+    apart = np.setdiff1d(np.arange(len(mu)), play)[:3]
+    dofs = lambda c: (3 * c[:, None] + np.arange(3)).ravel()
+    assert solver._formed_block(rows, cols) is not None
+    assert solver._formed_block(np.r_[rows, apart], cols) is None
+    for a, b in ((rows, cols), (rows, rows), (np.r_[rows, apart], cols)):
+        np.testing.assert_allclose(solver._block(a, b), W[np.ix_(dofs(a), dofs(b))], rtol=0,
+                                   atol=1e-12 * np.abs(W).max())
+    solver.renew(F, mu)
+    assert solver._formed_block(rows, cols) is None
+
+
 def test_factored_blocks_equal_the_formed_W(solve):
     """FactoredDelassus.block between sets of contacts (unsorted, overlapping, one contact, all)
     from one operator, whose P is built at the first call and reused: W formed here among them

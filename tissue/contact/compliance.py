@@ -123,12 +123,13 @@ def _polar_rotations(m: MODEL, x: ti.types.ndarray(), v: ti.types.ndarray(), h: 
 # (tissue.launch) whatever the step's sizes.
 SHARED_MEMBERS = ("R", "C0", "rows", "hr", "jds", "value", "sizes", "reals")
 WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS, "Re", "valence", "incidence",
-                                                                 "U", "ht", "Qt")})
+                                                                 "U", "ht", "Qt", "before")})
 CORRECTION = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS, "lam", "r0", "pushed",
                                                                        "x", "v")})
-WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows", "gather")
+WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows", "gather", "q_before",
+              "ld_before")
 WARP_REALS = ("h", "inverse_mass", "tolerance")
-N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS, GATHER = range(len(WARP_SIZES))
+N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS, GATHER, Q_BEFORE, LD_BEFORE = range(len(WARP_SIZES))
 H, INVERSE_MASS, TOLERANCE = range(len(WARP_REALS))
 
 
@@ -166,20 +167,30 @@ def _rotations_and_hr(k: ti.template(), o_node, nnz, serial: ti.template()):
 
 
 @ti.func
-def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, o_count, o_ptr, o_touched, n_active, d, ld,
-                             inverse_mass, gather, serial: ti.template()):
+def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, Qb: ti.template(), o_count, o_ptr, o_touched,
+                             n_active, d, ld, inverse_mass, gather, serial: ti.template()):
     """The rows' translations H T, and with gather (1; 0: Qt holds it already) Q among the touched
     dofs gathered once into Qt from q0 (ld × ld, row-major; a free body's factor adds the
     translation's block): a compact copy stays in cache where scattered reads of the whole Q (3n ×
-    3n, 10 MB for the liver) miss it."""
+    3n, 10 MB for the liver) miss it. With sizes[LD_BEFORE] > 0, Qb from sizes[Q_BEFORE] holds last
+    step's gather (that row length), and `before` each touched node's index among its nodes (-1:
+    new): the entries between nodes touched both times are copied from there (the same numbers, in
+    cache: the touched nodes change a few at a time), only the others read from the whole Q."""
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         k.ht[i] = _row_translation(k, o_count, o_ptr, i)
+    qb0, ldb = k.sizes[Q_BEFORE], k.sizes[LD_BEFORE]
     ti.loop_config(serialize=serial)
     for a, m in ti.ndrange(ld * gather, ld):
         value_am = 0.0
         if a < d and m < d:
-            value_am = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
+            pa, pm = -1, -1
+            if ldb > 0:
+                pa, pm = k.before[a // 3], k.before[m // 3]
+            if pa >= 0 and pm >= 0:
+                value_am = Qb[qb0 + (3 * pa + a % 3) * ldb + 3 * pm + m % 3]
+            else:
+                value_am = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
         elif a == m:
             value_am = inverse_mass
         Qt[q0 + a * ld + m] = value_am
@@ -205,8 +216,8 @@ def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
     _rotations_and_hr(k, o_node, nnz, serial)
     d = 3 * k.sizes[N_TOUCHED]
-    _translations_and_gather(k, k.Qt, 0, o_count, o_ptr, o_touched, n_active, d, d, inverse_mass, k.sizes[GATHER],
-                             serial)
+    _translations_and_gather(k, k.Qt, 0, k.Qt, o_count, o_ptr, o_touched, n_active, d, d, inverse_mass,
+                             k.sizes[GATHER], serial)
     # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
     # fastest, so neighbouring threads read neighbouring entries of a row.
     ti.loop_config(serialize=serial)
@@ -237,11 +248,12 @@ def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
 
 
 @ti.kernel
-def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), diagonal: ti.types.ndarray(),
+def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), Qb: ti.types.ndarray(), diagonal: ti.types.ndarray(),
             pos: ti.types.ndarray(), serial: ti.template()):
     """The factors of W (tissue.contact.FactoredDelassus): Hr and H T into P at this body's
     entries of `pos` (from pos_offset), Q among the touched dofs into Q from q_offset (with the
-    translation's block for a free body), and W's diagonal blocks:
+    translation's block for a free body; from last step's factor Qb where it has them: see
+    _translations_and_gather), and W's diagonal blocks:
     diagonal[block row] += h (Hr Q Hrᵀ + (H T)(H T)ᵀ / (c m))."""
     n_active, nnz = k.sizes[N_ACTIVE], k.sizes[NNZ]
     q0, p0 = k.sizes[Q_OFFSET], k.sizes[POS_OFFSET]
@@ -250,7 +262,7 @@ def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), diagonal: ti.
     _rotations_and_hr(k, o_node, nnz, serial)
     d = 3 * k.sizes[N_TOUCHED]
     ld = d + (3 if inverse_mass != 0.0 else 0)      # Q's row length
-    _translations_and_gather(k, Q, q0, o_count, o_ptr, o_touched, n_active, d, ld, inverse_mass, 1, serial)
+    _translations_and_gather(k, Q, q0, Qb, o_count, o_ptr, o_touched, n_active, d, ld, inverse_mass, 1, serial)
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         count = k.jds[o_count + i]
@@ -362,10 +374,11 @@ class WarpedCompliance:
         self._own_polar = solver.fem.rotation != "large"     # else its polar rotations: element_rotations
         self.storage = Storage()                              # this step's scratch: see prepare
         self._ready = False
-        self._gathered = None               # the rows whose Q among their touched nodes Qt holds (add_to)
+        self._qt_rows = None                # the rows whose Q among their touched nodes Qt holds (add_to)
         self._kept_packs = {}               # the launches' argpacks by kind: see _pack
         # The step's scalars (see WARP), written in place each step.
         self._sizes, self._reals = np.zeros(len(WARP_SIZES), np.int32), np.zeros(len(WARP_REALS), self._np)
+        self._before = self.storage.get("before", 1, ti.i32)   # see factor
         self.follow_edits()
 
     def follow_edits(self) -> None:
@@ -376,7 +389,7 @@ class WarpedCompliance:
         fem = solver.fem
         n = fem.n_nodes
         self.jds = None                  # the next rows are written anew (prepare)
-        self._gathered = None            # and Q gathered anew from the new C0
+        self._qt_rows = None             # and Q gathered anew from the new C0
         if self.source is not None:      # folded only where W needs it (prepare)
             self.source.update()
             self.C0, self.inverse_mass = self.source.C, 0.0
@@ -450,24 +463,31 @@ class WarpedCompliance:
         if jds is self.jds and self.source is None:
             return
         self.jds = jds
-        d, real, storage = 3 * len(jds.touched), self.real, self.storage
+        real, storage = self.real, self.storage
         blocks = self._read_source(jds.touched) if self.source is not None else jds.touched
         self.rows = storage.put("rows", blocks, ti.i32)
         self._jds = storage.put("jds", jds.packed, ti.i32)
         self._value = storage.put("value", jds.value, ti.types.matrix(3, 3, real))
         self.hr = storage.get("hr", jds.nnz, ti.types.matrix(3, 3, real))          # (H R) per block
-        self.U = storage.get("U", jds.n_active * d, ti.types.vector(3, real))      # Q Hrᵀ per (row, dof)
         self.ht = storage.get("ht", jds.n_active, ti.types.matrix(3, 3, real))     # (H T) per row
-        self._Qt = storage.get("Qt", d * d, real)                                 # Q among the touched dofs
-        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0, 1
+        self._scratch_for_W(1, 1)                   # sized by add_to, the one launch that writes them
+        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0, 1, 0, 0
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
+
+    def _scratch_for_W(self, n_u: int, n_qt: int) -> None:
+        """U (Q Hrᵀ per (row, dof)) and Qt (Q among the touched dofs) with room for n_u and n_qt
+        entries: only forming W writes them (W's factors go to the stage's buffers), so a stage
+        that keeps W as its factors does not grow them step after step, nor rebuild the launches'
+        argpack and record their launches again each time."""
+        self.U = self.storage.get("U", n_u, ti.types.vector(3, self.real))
+        self._Qt = self.storage.get("Qt", n_qt, self.real)
 
     def _pack(self):
         """The argpack of the rotations' and W's launches (WARP), rebuilt only when one of its
         arrays was re-allocated."""
         arrays = (*self._shared(), self._element_rotations, *self.solver.fem.model.gather_index(), self.U, self.ht,
-                  self._Qt)
+                  self._Qt, self._before)
         self._kept_packs["warp"] = kept_pack(self._kept_packs.get("warp"), WARP, arrays)
         return self._kept_packs["warp"][0]
 
@@ -520,31 +540,44 @@ class WarpedCompliance:
         """W (n_rows², the backend's float type) += h (H R) A₀⁻¹ (H R)ᵀ."""
         if not self.jds.n_active:
             return
-        self._sizes[N_ROWS] = W.shape[0]
+        self._sizes[N_ROWS], self._sizes[LD_BEFORE] = W.shape[0], 0
         # Q among the touched nodes is gathered again only for other rows (or another C0): at rest
         # the rows are kept, and Qt still holds it (reading the scattered entries of C0 was about
         # half the launch's time on the floor scene).
-        self._sizes[GATHER] = self._gathered is not self.jds or self.source is not None
+        self._sizes[GATHER] = self._qt_rows is not self.jds or self.source is not None
         self.storage.put("sizes", self._sizes, ti.i32)
+        d = 3 * len(self.jds.touched)
+        self._scratch_for_W(self.jds.n_active * d, d * d)
         flat, in_place = _whole(W)
         _assemble_replayed(self._pack(), flat, self.serial)
-        self._gathered = self.jds
+        self._qt_rows = self.jds
         if not in_place:
             W[...] = flat[:W.size].reshape(W.shape)
         self._ready = True
 
     def factor(self, P: np.ndarray, Q: np.ndarray, diagonal: np.ndarray, pos: np.ndarray, q_offset: int = 0,
-               pos_offset: int = 0) -> None:
+               pos_offset: int = 0, before: tuple | None = None) -> None:
         """This body's factors of W (tissue.contact.FactoredDelassus): P[pos[pos_offset + e]] = (H R)
         block of JDS entry e (and P[pos[pos_offset + nnz + i]] = (H T) of sorted block row i, free
         bodies), its compliance on the factor's dofs in Q from q_offset (factor_size(jds)²
         entries, row-major), and W's diagonal blocks += this body's part. (The stage hands the
-        same buffers each step, whole: the launch replays.)"""
-        if self.jds.n_active:
-            self._sizes[Q_OFFSET], self._sizes[POS_OFFSET] = q_offset, pos_offset
-            self.storage.put("sizes", self._sizes, ti.i32)
-            _factor_replayed(self._pack(), P, Q, diagonal, pos, self.serial)
-            self._ready = True
+        same buffers each step, whole: the launch replays.) before: (Q, q_offset, touched nodes) of
+        this body's factor one step earlier, in a buffer this one does not write: its entries
+        between nodes touched both times are copied from there (not with a cutting compliance,
+        whose A₀⁻¹ changes)."""
+        if not self.jds.n_active:
+            return
+        Qb, ld_before = Q, 0
+        if before is not None and self.source is None and len(before[2]):
+            Qb, q_before, touched = before
+            at = np.minimum(np.searchsorted(touched, self.jds.touched), len(touched) - 1)
+            index = np.where(touched[at] == self.jds.touched, at, -1).astype(np.int32)
+            self._before = self.storage.put("before", index, ti.i32)
+            self._sizes[Q_BEFORE], ld_before = q_before, 3 * len(touched) + 3 * self.free
+        self._sizes[Q_OFFSET], self._sizes[POS_OFFSET], self._sizes[LD_BEFORE] = q_offset, pos_offset, ld_before
+        self.storage.put("sizes", self._sizes, ti.i32)
+        _factor_replayed(self._pack(), P, Q, Qb, diagonal, pos, self.serial)
+        self._ready = True
 
     def correct(self, lam: np.ndarray) -> None:
         """x += R h A₀⁻¹ (H R)ᵀ λ and v += that / h, in the solver's arrays."""

@@ -511,8 +511,7 @@ class Detector:
             self._prm_bounds.from_numpy(np.concatenate([b for b, _ in balls]).astype(self._np))
         if balls:
             self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
-        self._moving = [o.motion is not None for o in self.obstacles]
-        self._any_moving = any(self._moving)
+        self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
         self._fields = {}
@@ -658,10 +657,13 @@ class Detector:
             ob = np.asarray(others, np.int32)[slot[soft] - no]
             hits["other"][soft] = ob
             face = res[soft, 10].astype(np.int64)
-            tri = np.empty((len(ob), 3), np.int32)
-            for b in np.unique(ob):
-                sel = ob == b
-                tri[sel] = self.faces[b][face[sel]]
+            if len(others) == 1:                    # (two bodies: no grouping by body)
+                tri = self.faces[others[0]][face]
+            else:
+                tri = np.empty((len(ob), 3), np.int32)
+                for b in np.unique(ob):
+                    sel = ob == b
+                    tri[sel] = self.faces[b][face[sel]]
             hits["triangle"][soft] = tri
             hits["weights"] = np.where(soft[:, None], res[:, 7:10], 0.0)
         else:
@@ -670,12 +672,11 @@ class Detector:
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
         motion = np.zeros((k, 3))
-        if self._any_moving:
-            for j in np.unique(slot[~soft]):
-                if self._moving[j]:
-                    (R1, t1), (R0, t0) = poses[j], previous_poses[j]
-                    sel = slot == j
-                    motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
+        for j in self._moving_ids:              # (slot j < no: obstacle j)
+            sel = slot == j
+            if sel.any():
+                (R1, t1), (R0, t0) = poses[j], previous_poses[j]
+                motion[sel] = point[sel] - ((point[sel] - t1) @ R1 @ R0.T + t0)
         return Contacts(**hits, normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)
 
     def _hits(self, a, s, slot, soft) -> dict:

@@ -61,7 +61,7 @@ from ..errors import TissueError
 from . import gauss_seidel, jacobi, newton
 from .cone import _error2_numpy, natural_map_residual, project_cone
 from .delassus import FactoredDelassus
-from .layouts import CSR, DELASSUS, DENSE, FACTORED, PROBLEM
+from .layouts import CSR, DELASSUS, DENSE, FACTORED, IN_PLAY_MAX, PROBLEM
 from .storage import Storage
 
 METHODS = ("gauss_seidel", "jacobi", "newton", "auto")
@@ -193,6 +193,7 @@ class FrictionalContactSolver:
                 raise TissueError(f"W: diagonal 3x3 block of contact {bad[0]} is not positive definite"
                                   f" (smallest eigenvalue {lo[bad[0]]:.3g}; {len(bad)} such block(s))")
         self.n, self.W, self.mu, self._D_host = n, W, mu, D
+        self._swept = False             # the sweeps' W among the contacts in play is this problem's
         self.reduce = bool(reduce) and self.method == "gauss_seidel"      # (auto sweeps the whole problem)
         layout = self._layout
         dense = layout == "dense" or (layout == "auto" and (
@@ -247,11 +248,12 @@ class FrictionalContactSolver:
         st.put("mu", self.mu, real)
         if n != size:
             st.put("sizes", np.array([n, window, 0, 0, 0]), ti.i32)
-        # W in its layout (see tissue.contact.layouts), the factored layout's y and z (one element
-        # elsewhere), its sizes and its scale.
+        # W in its layout (see tissue.contact.layouts), the factored layout's y and z and its
+        # scratch for W among the contacts in play (one element elsewhere), its sizes and its scale.
         none = st.get("none", 1, real)
-        y = z = none
-        dims, scale = [0, 0], 1.0
+        y = z = dense = none
+        active = st.get("none_int", 1, ti.i32)
+        dims, scale = [0, 0, 0], 1.0
         if self.layout == DENSE:
             W = self.W if isinstance(self.W, np.ndarray) else self.W.toarray()
             kept = st.get("W", m * m, real)
@@ -267,13 +269,18 @@ class FrictionalContactSolver:
         else:
             W = self.W
             abc = (st.put("index", W.packed(), ti.i32), st.put("blocks", W.blocks, real, (3, 3)), st.put("Q", W.Q, real))
-            y, z = (st.get(name, max(1, int(W.y_offset[-1])), real) for name in ("y", "z"))
-            dims, scale = [len(W.blocks), len(W.y_offset) - 1], float(W.scale)
+            dofs = max(1, int(W.y_offset[-1]))
+            y, z = (st.get(name, dofs, real) for name in ("y", "z"))
+            room = min(n, IN_PLAY_MAX)
+            active = st.get("active", n + room + 1, ti.i32)
+            dense = st.get("dense", 9 * room * room + 3 * dofs, real)
+            dims, scale = [len(W.blocks), len(W.y_offset) - 1, room], float(W.scale)
         if (self.layout, dims, scale) != kept_W:
             st.put("dims", np.array(dims), ti.i32)
             st.put("scale", np.array([scale]), real)
         self._W = st.pack(f"delassus {self.layout}", DELASSUS, a=abc[0], b=abc[1], c=abc[2],
-                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, dims=st.get("dims", 2, ti.i32),
+                          Wd=st.put("Wd", D, real, (3, 3)), y=y, z=z, active=active, dense=dense,
+                          dims=st.get("dims", 3, ti.i32),
                           scale=st.get("scale", 1, real))
         self._uploaded = (n, (self.layout, dims, scale))
 
@@ -342,7 +349,22 @@ class FrictionalContactSolver:
         gauss_seidel.run); sets self._last_error2 and self._stalled."""
         its, self._last_error2, self._stalled = gauss_seidel.run(self.layout, self._W, self._P, max_iterations,
                                                                  tol_abs, stall, horizon)
+        self._swept = True
         return its
+
+    def _formed_block(self, rows, cols) -> np.ndarray | None:
+        """W between contacts `rows` and `cols` (ids) from W among the contacts in play that this
+        problem's last sweeps formed (FACTORED, on the host; see gauss_seidel), when it holds
+        them all; else None."""
+        if not (self.layout == FACTORED and self._swept and self.storage.host):
+            return None
+        room = min(self.n, IN_PLAY_MAX)
+        slot = self.storage.get("active", self.n + room + 1, ti.i32)[:self.n]
+        a, b = slot[rows], slot[cols]
+        if room == 0 or (a < 0).any() or (b < 0).any():
+            return None
+        dense = self.storage.get("dense", 9 * room * room, self._npr)[:9 * room * room].reshape(3 * room, 3 * room)
+        return dense[_dofs(a)][:, _dofs(b)]
 
     def _gauss_seidel(self, max_iterations, tol_abs):
         """Without `reduce`: sweeps over the whole problem, in one launch. With it: sweeps on the
@@ -432,9 +454,11 @@ class FrictionalContactSolver:
         return its
 
     def _block(self, rows, cols) -> np.ndarray:
-        """W between contacts `rows` and `cols` (ids), dense."""
+        """W between contacts `rows` and `cols` (ids), dense (FACTORED: read from W among the
+        contacts in play where the sweeps formed it, else from the factors)."""
         if self.layout == FACTORED:
-            return self.W.block(rows, cols)
+            formed = self._formed_block(rows, cols)
+            return formed if formed is not None else self.W.block(rows, cols)
         r, c = _dofs(rows), _dofs(cols)
         if sp.issparse(self.W):                     # (also a small sparse W held densely)
             return self.W[r][:, c].toarray()

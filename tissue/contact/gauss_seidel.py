@@ -10,7 +10,9 @@ sweep say "converged" (plus at the start, which lets a warm start that already s
 problem cost 0 sweeps). Between two residual checks a sweep passes over the contacts that carry
 nothing and were apart (u_n > 0) when last solved, but for every REVISIT_EVERY-th sweep: the check
 sees them all again, so the stopping rule is unchanged, and most contacts within an alarm distance
-never touch (the pressed liver: ~140 of ~155).
+never touch (the pressed liver: ~140 of ~155). With W kept as its factors, those sweeps read W
+formed among the contacts in play (layouts._join_play, up to IN_PLAY_MAX of them) instead of
+keeping y = Q Pᵀ r through every dof their nodes move; the same sweeps, rounding aside.
 
 Anderson acceleration (window m = the history's size, see `history_shape`): a sweep is a
 fixed-point map r <- G(r); after each sweep the next start is the combination of the last m + 1
@@ -25,7 +27,8 @@ import taichi as ti
 
 from .cone import _block, _contact_error2, _local_solve, _project, _vec
 from ..launch import replayed
-from .layouts import CONTACTS, DELASSUS, FACTORED, HORIZON, MAX_SWEEPS, PROBLEM, STALL, TOL2, WINDOW, _refresh, _residual, _spread, _wr
+from .layouts import (CONTACTS, DELASSUS, FACTORED, HORIZON, MAX_SWEEPS, PROBLEM, ROOM, STALL, TOL2, WINDOW, _gather_play,
+                      _play_offsets, _refresh, _residual, _spread, _wr, _wr_play)
 
 ANDERSON_RESTARTS = 10    # rejecting a combination that starts worse than the sweep before, at most this often
 REVISIT_EVERY = 8         # every this many sweeps, one that visits the contacts apart too
@@ -151,16 +154,26 @@ def run(layout: int, W, P, max_iterations: int, tol_abs: float, stall: int = 0, 
 def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     """Sweeps until the residual is ≤ tol2 (squared) or max_it sweeps; with stall > 0 also when
     `stall` sweeps did not halve the residual, or would not reach tol2 within `horizon` sweeps at
-    the rate of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps."""
+    the rate of the last `stall` (stats[2] = 1: stalled), read every `stall` sweeps. FACTORED: the
+    sweeps that pass over the contacts apart read W among the contacts in play (see below)."""
     n, window = P.sizes[CONTACTS], P.sizes[WINDOW]
     max_it, stall, horizon, tol2 = P.sizes[MAX_SWEEPS], P.sizes[STALL], P.sizes[HORIZON], P.reals[TOL2]
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
+    stale, play = 0, 0          # FACTORED: y behind r; W among the contacts in play still kept
     _refresh(layout, W, P.r, n)
     while True:
+        if ti.static(layout == FACTORED):
+            if it == 0:
+                _, o_count, _ = _play_offsets(W, n)
+                for i in range(n):
+                    W.active[i] = -1
+                W.active[o_count] = 0
+                play = W.dims[ROOM] > 0
         at_phase = stall > 0 and it % stall == 0
         if it == 0 or est <= tol2 or it >= max_it or at_phase:
             err2 = _residual(layout, W, P, n)
+            stale = 0
             if err2 <= tol2 or it >= max_it:
                 break
             if at_phase:
@@ -172,6 +185,21 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
                     break
                 phase_err2 = err2
         _save(P.r, P.hist, 2 * window + 2, on, 3 * n)
+        revisit = it % REVISIT_EVERY == REVISIT_EVERY - 1
+        formed = 0
+        if ti.static(layout == FACTORED):
+            # A sweep that passes over the contacts apart visits those in play alone (r ≠ 0 or
+            # u_n ≤ 0 at its start, as the test below finds them), with r zero elsewhere: their
+            # (W r)_i from W formed among them (contacts join as they come into play, up to its
+            # room), a few hundred multiply-adds each, not y kept through every dof of their
+            # nodes (the pressed liver: ~15 of ~110 contacts in play, ~140 dofs). The same sweep,
+            # rounding aside; the others, and every residual, read y.
+            if play and not revisit:
+                formed = _gather_play(W, P, n)
+                play = formed
+            if not formed and stale:
+                _refresh(layout, W, P.r, n)
+                stale = 0
         est = 0.0
         for i in range(n):
             # Contact i solved with the others fixed; est gathers the error the old r_i had (a
@@ -181,10 +209,15 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             # gap meanwhile; without it, problems stopped by the sweep cap penetrated 4-7× deeper):
             # most of those within the alarm distance never touch.
             ri = _vec(P.r, i)
-            if ri.norm_sqr() == 0.0 and P.u[3 * i] > 0.0 and it % REVISIT_EVERY != REVISIT_EVERY - 1:
+            if ri.norm_sqr() == 0.0 and P.u[3 * i] > 0.0 and not revisit:
                 continue
             A = _block(W.Wd, i)
-            ui = _vec(P.q, i) + _wr(layout, W, P.r, n, i)
+            wr = ti.Vector([0.0, 0.0, 0.0])
+            if formed:
+                wr = _wr_play(W, P.r, n, i)
+            else:
+                wr = _wr(layout, W, P.r, n, i)
+            ui = _vec(P.q, i) + wr
             rnew = _local_solve(A, ui - A @ ri, P.mu[i])
             for k in ti.static(range(3)):
                 P.r[3 * i + k] = rnew[k]
@@ -192,13 +225,15 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             est += _contact_error2(ri, ui, P.mu[i])
             if ti.static(layout == FACTORED):
                 dr = rnew - ri
-                if dr.dot(dr) > 0.0:
+                if not formed and dr.dot(dr) > 0.0:
                     _spread(W, n, i, dr)
+        if formed:
+            stale = 1
         it += 1
         if on > 0:
             acc = _accelerate(P.r, P.hist, P.gram, P.mu, n, window, est, ti.Vector([since, on, last]))
             since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
-            _refresh(layout, W, P.r, n)
+            stale = 1           # (y is refreshed where it is read next)
     P.stats[0] = it
     P.stats[1] = err2
     P.stats[2] = stalled

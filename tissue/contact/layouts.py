@@ -1,7 +1,8 @@
 """W on the device, by layout, and the argpacks the contact solvers' kernels take.
 
 Every kernel takes W as one DELASSUS argpack (the layout's arrays in slots a, b, c, W's 3×3
-diagonal blocks Wd, the factored layout's work vectors y, z, its sizes `dims` and its `scale`)
+diagonal blocks Wd, the factored layout's work vectors y, z and its scratch for W among the
+contacts in play (`active`, `dense`: see gauss_seidel), its sizes `dims` and its `scale`)
 and the problem as one PROBLEM argpack (q, mu, the reactions r and velocities u, Anderson's
 history and Gram matrix, the stats a launch reports back, and the launch's `sizes` and `reals`).
 Slots by layout:
@@ -32,14 +33,18 @@ DENSE, CSR, FACTORED = 0, 1, 2
 
 DELASSUS = ti.types.argpack(a=ti.types.ndarray(), b=ti.types.ndarray(), c=ti.types.ndarray(),
                             Wd=ti.types.ndarray(), y=ti.types.ndarray(), z=ti.types.ndarray(),
+                            active=ti.types.ndarray(), dense=ti.types.ndarray(),
                             dims=ti.types.ndarray(), scale=ti.types.ndarray())
 PROBLEM = ti.types.argpack(q=ti.types.ndarray(), mu=ti.types.ndarray(), r=ti.types.ndarray(), u=ti.types.ndarray(),
                            hist=ti.types.ndarray(), gram=ti.types.ndarray(), stats=ti.types.ndarray(),
                            sizes=ti.types.ndarray(), reals=ti.types.ndarray())
-# W.dims (int): the factored layout's blocks and segments. P.sizes (int): contacts, Anderson's
+# W.dims (int): the factored layout's blocks, segments and room for contacts in play (gauss_seidel's
+# dense W among them: `active` holds each contact's slot there (n), the slots' contacts (room) and
+# their count; `dense` that W, 3 room × 3 room, then one contact's row of P Q, 3 × the dofs). P.sizes (int): contacts, Anderson's
 # window, the sweep cap, the stall phase and its horizon (gauss_seidel.run). P.reals: the squared
 # tolerance.
-NNZ, SEGMENTS = 0, 1
+NNZ, SEGMENTS, ROOM = 0, 1, 2
+IN_PLAY_MAX = 64      # the factored layout's sweeps form W among at most this many contacts in play
 CONTACTS, WINDOW, MAX_SWEEPS, STALL, HORIZON = 0, 1, 2, 3, 4
 TOL2 = 0
 
@@ -120,6 +125,98 @@ def _spread(W: ti.template(), n, i, dr):
         row = W.a[o_q + seg] + (W.a[o_col + e] - y0) * d
         for m in range(d):
             W.y[y0 + m] += W.c[row + m] * z[0] + W.c[row + d + m] * z[1] + W.c[row + 2 * d + m] * z[2]
+
+
+@ti.func
+def _play_offsets(W: ti.template(), n):
+    """FACTORED: where `active` lists the slots' contacts and their count, and the row length of
+    W among the contacts in play in `dense` (3 × its room)."""
+    room = W.dims[ROOM]
+    return n, n + room, 3 * room
+
+
+@ti.func
+def _in_play(r: ti.template(), u: ti.template(), i):
+    """Contact i carries a reaction or touched (u_n ≤ 0) when last solved: a sweep visits it (the
+    negation of the sweeps' skip test, whatever the numbers)."""
+    return not (_vec(r, i).norm_sqr() == 0.0 and u[3 * i] > 0.0)
+
+
+@ti.func
+def _join_play(W: ti.template(), n, i):
+    """FACTORED: contact i into the next slot s of W among the contacts in play: first V = P_i Q
+    (3 × the dofs, after W in `dense`; three rows of its segment's Q per block, as _spread reads
+    them), then W's blocks between i and each contact j in play (i included), scale V P_jᵀ, into
+    row s and, mirrored, column s."""
+    o_col, o_seg, o_y, o_q, segments = _factored_offsets(W, n)
+    o_list, o_count, stride = _play_offsets(W, n)
+    s = W.active[o_count]
+    ov = stride * stride
+    dofs = W.a[o_y + segments]
+    for k in range(3 * dofs):
+        W.dense[ov + k] = 0.0
+    for e in range(W.a[i], W.a[i + 1]):
+        B = _block(W.b, e)
+        seg = W.a[o_seg + e]
+        y0 = W.a[o_y + seg]
+        d = W.a[o_y + seg + 1] - y0
+        row = W.a[o_q + seg] + (W.a[o_col + e] - y0) * d
+        for m in range(d):
+            v = B @ ti.Vector([W.c[row + m], W.c[row + d + m], W.c[row + 2 * d + m]])
+            for a in ti.static(range(3)):
+                W.dense[ov + a * dofs + y0 + m] += v[a]
+    W.active[i] = s
+    W.active[o_list + s] = i
+    W.active[o_count] = s + 1
+    scale = W.scale[0]
+    for t in range(s + 1):
+        j = W.active[o_list + t]
+        G = ti.Matrix.zero(float, 3, 3)
+        for f in range(W.a[j], W.a[j + 1]):
+            c = ov + W.a[o_col + f]
+            V = ti.Matrix.zero(float, 3, 3)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                V[a, b] = W.dense[c + a * dofs + b]
+            G += V @ _block(W.b, f).transpose()
+        for a, b in ti.static(ti.ndrange(3, 3)):
+            W.dense[(3 * s + a) * stride + 3 * t + b] = scale * G[a, b]
+        if t != s:
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                W.dense[(3 * t + b) * stride + 3 * s + a] = scale * G[a, b]
+
+
+@ti.func
+def _gather_play(W: ti.template(), P: ti.template(), n):
+    """FACTORED: the contacts in play (_in_play) not yet among those W is formed between, joined
+    (_join_play); 0, joining none, when they would exceed its room."""
+    o_list, o_count, stride = _play_offsets(W, n)
+    new = 0
+    for i in range(n):
+        if W.active[i] < 0 and _in_play(P.r, P.u, i):
+            new += 1
+    fits = 0
+    if W.active[o_count] + new <= W.dims[ROOM]:
+        fits = 1
+        if new > 0:
+            for i in range(n):
+                if W.active[i] < 0 and _in_play(P.r, P.u, i):
+                    _join_play(W, n, i)
+    return fits
+
+
+@ti.func
+def _wr_play(W: ti.template(), r: ti.template(), n, i):
+    """FACTORED: (W r)_i from W among the contacts in play, contact i among them and r zero
+    outside them."""
+    o_list, o_count, stride = _play_offsets(W, n)
+    s = W.active[i]
+    out = ti.Vector([0.0, 0.0, 0.0])
+    for t in range(W.active[o_count]):
+        rj = _vec(r, W.active[o_list + t])
+        for a in ti.static(range(3)):
+            base = (3 * s + a) * stride + 3 * t
+            out[a] += W.dense[base] * rj[0] + W.dense[base + 1] * rj[1] + W.dense[base + 2] * rj[2]
+    return out
 
 
 @ti.func

@@ -211,6 +211,7 @@ class ContactStage:
         self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
         self._frictionless = (None, None)       # a μ per contact, and where it is 0 (_solve)
         self._kept = None                       # the last rows' Jacobian (_jacobian)
+        self._factors_before = {}               # per body, its last step's factor of W (_factored)
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
         self._real, self._np = real, (np.float64 if real == ti.f64 else np.float32)
@@ -237,13 +238,14 @@ class ContactStage:
         self._edited.clear()
         self._held_nodes()
         self._forget_warm_start()
-        self._kept = None
+        self._kept, self._factors_before = None, {}
 
     def follow_compliance(self, body: int, compliance) -> None:
         """Take body `body`'s rest compliance from a tissue.cutting.CuttingCompliance (kept exact
         through its cuts by low-rank updates) instead of inverting it anew after each cut."""
         self.compliance[body].follow(compliance)
         self._kept = None                       # (its factor's size may change: _KeptRows.factors_pay)
+        self._factors_before = {}
 
     # ---- queries ------------------------------------------------------------------------------
 
@@ -316,11 +318,12 @@ class ContactStage:
         """A numpy buffer of at least n rows (of `shape`) kept between steps, whole: the same
         memory each step, so the launches writing it replay (tissue.launch). Two sets alternate
         from step to step (`_flip`), so what a step hands out (W, its factors) stays valid until
-        the step after next."""
+        the step after next. First made with room for 4n (a press's contacts grow several-fold
+        from the first), then doubled: each new buffer records the launches over it again."""
         buffers = self._buffers[self._flip]
         buf = buffers.get(name)
         if buf is None or len(buf) < n or buf.dtype != dtype:
-            buf = buffers[name] = np.empty((max(n, 2 * len(buf) if buf is not None else n, 1),) + shape, dtype)
+            buf = buffers[name] = np.empty((max(n, 2 * len(buf) if buf is not None else 4 * n, 1),) + shape, dtype)
         return buf
 
     def _delassus_buffer(self, n: int, dtype) -> np.ndarray:
@@ -369,6 +372,7 @@ class ContactStage:
             if s.compliance == "warped" and kept.factors_pay(self):
                 W = self._factored(rows, touched, jds)
             elif s.compliance == "warped":
+                self._factors_before = {}
                 W = self._delassus_buffer(rows.n_rows, self._np)
                 for b in touched:
                     c = self.compliance[b]
@@ -485,9 +489,15 @@ class ContactStage:
         Q = self._buffer("Q", total, self._np)
         diagonal = self._buffer("diagonal", n_block_rows, self._np, (3, 3))
         diagonal[:n_block_rows] = 0.0
-        start = 0
+        start, before = 0, self._factors_before
+        self._factors_before = {}
         for k, b in enumerate(touched):
-            self.compliance[b].factor(blocks, Q, diagonal, pos, int(q_offset[k]), start)
+            c = self.compliance[b]
+            if isinstance(c, WarpedCompliance):
+                c.factor(blocks, Q, diagonal, pos, int(q_offset[k]), start, before.get(b))
+                self._factors_before[b] = (Q, int(q_offset[k]), jds[b].touched)
+            else:
+                c.factor(blocks, Q, diagonal, pos, int(q_offset[k]), start)
             start += len(parts[k][0])
         ptr = offsets(np.bincount(row, minlength=n_block_rows))
         return FactoredDelassus(ptr, col[order], segment[order], blocks[:len(row)].astype(np.float64, copy=False),

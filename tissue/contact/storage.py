@@ -33,6 +33,12 @@ class HostArray(np.ndarray):
         self[...] = other
 
 
+# Elements a named array is first allocated with at least: a Taichi ndarray costs ~0.1 ms to
+# allocate, and each growth rebuilds the argpacks over it and records their launches again (the
+# pressed liver's per-row arrays grew 2-5 times each from its first contacts).
+FIRST_ROOM = 256
+
+
 def _numpy_type(dtype):
     return np.int32 if dtype == ti.i32 else (np.float64 if dtype == ti.f64 else np.float32)
 
@@ -69,14 +75,17 @@ class Storage:
 
     def get(self, name, n: int, dtype, tail: tuple = ()):
         """The array `name` with room for `n` elements along its first axis, of shape (capacity,)
-        + tail (contents not kept across a growth). First allocated at n; when short, at
-        max(n, twice its capacity), so the reallocations of a growing demand stay few (amortised
-        doubling); allocated anew at n when `tail` changes."""
+        + tail (contents not kept across a growth). First allocated at max(n, FIRST_ROOM); when
+        short, at max(n, twice its capacity), so the reallocations of a growing demand stay few
+        (amortised doubling; a contact stage's first contacts are a few, its pressed ones a few
+        hundred); allocated anew at n when `tail` changes."""
         array = self._arrays.get(name)
         tail = tuple(tail)
         if array is not None and array.shape[1:] == tail and array.shape[0] >= n:
             return array
-        if array is not None:
+        if array is None:
+            n = max(n, FIRST_ROOM)
+        else:
             self._growths += 1
             if array.shape[1:] == tail:
                 n = max(n, 2 * array.shape[0])
