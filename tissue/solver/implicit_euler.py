@@ -612,6 +612,9 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first):
     """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first, a value known at
     compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value."""
     if ti.static(o.preconditioner == "multigrid"):
+        for _ in range(1):
+            if not first:
+                _stop_before_preconditioning(k)
         multigrid.apply(k, o, k.r, k.z)
         for b in range(_blocks(k)):
             rz = 0.0
@@ -622,6 +625,18 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first):
                         k.p[v] = k.z[v]
                     rz += k.r[v].dot(k.z[v])
             k.partial[0, b] = rz
+
+
+@ti.func
+def _stop_before_preconditioning(k: ti.template()):
+    """The stopping rule of _next_direction, taken where _descend left ‖r‖² (partial[1]), so that
+    the last iteration's V-cycle, whose z nothing reads, is skipped (one thread)."""
+    if k.scalars[DONE] == 0:
+        tol = k.parameters[TOLERANCE]
+        if _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or \
+                k.scalars[ITERATION] + 1 >= k.parameters[MAX_ITERATIONS]:
+            k.scalars[ITERATION] = k.scalars[ITERATION] + 1
+            k.scalars[DONE] = 1
 
 
 @ti.func
