@@ -252,7 +252,7 @@ def polar_rotation(F, tol):
 
     Near orthogonality (a tissue's elements under moderate strain) Newton–Schulz gets there first,
     by products alone (`newton_schulz`; the scaled iteration's inverse, norms and square roots
-    wait on one another): the same factor, to within tol.
+    wait on one another): the same factor to round-off.
     """
     X, done = newton_schulz(F, tol)
     for _ in range(30):
@@ -316,7 +316,7 @@ def newton_schulz(F, tol):
         if e > 0.5:                             # too far from orthogonal for Newton–Schulz
             break
         X = X - 0.5 * (X @ E)
-        if e * e <= tol:    # the updated X's XᵀX − I = −¾E² + ¼E³: within tol, no need to check it
+        if e <= tol:
             done = True
             break
     return X, done

@@ -68,7 +68,7 @@ def element_energy(m: ti.template(), e, x: ti.template(), rotation: ti.template(
     """Element e's elastic energy (J) at positions x, as `element_energies`: from F's polar
     rotation where Newton–Schulz finds it (to `tol`; F nearly orthogonal and not inverted: a
     tissue's elements under moderate strain), with fewer dependent operations than the
-    eigensolve of FᵀF and the same energy, to within the rotation's tol; elsewhere from the stretches."""
+    eigensolve of FᵀF and the same energy to round-off; elsewhere from the stretches."""
     F = deformation_gradient(m, e, x)
     energy = 0.0
     if ti.static(rotation == "linear"):
