@@ -620,6 +620,9 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first):
     """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first, a value known at
     compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value."""
     if ti.static(o.preconditioner == "multigrid"):
+        for _ in range(1):
+            if not first:
+                _stop_before_preconditioning(k)
         multigrid.apply(k, o, k.r, k.z)
         for b in range(_blocks(k)):
             rz = 0.0
@@ -630,6 +633,18 @@ def _precondition_coupled(k: ti.template(), o: ti.template(), first):
                         k.p[v] = k.z[v]
                     rz += k.r[v].dot(k.z[v])
             k.partial[0, b] = rz
+
+
+@ti.func
+def _stop_before_preconditioning(k: ti.template()):
+    """The stopping rule of _next_direction, taken where _descend left ‖r‖² (partial[1]), so that
+    the last iteration's V-cycle, whose z nothing reads, is skipped (one thread)."""
+    if k.scalars[DONE] == 0:
+        tol = k.parameters[TOLERANCE]
+        if _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or \
+                k.scalars[ITERATION] + 1 >= k.parameters[MAX_ITERATIONS]:
+            k.scalars[ITERATION] = k.scalars[ITERATION] + 1
+            k.scalars[DONE] = 1
 
 
 @ti.func
@@ -706,7 +721,10 @@ def _guess(k: ti.template(), v):
 
 @ti.func
 def _warm_start(k: ti.template(), o: ti.template()):
-    """Warm: r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
+    """Warm: dv = α g from the guess g in dv, α = gᵀb / gᵀAg, the multiple of g nearest the solution
+    in A's norm (never farther than zero or g itself: the guess of a settling body, whose b
+    shrinks, overshoots); then r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold,
+    dv = 0: as they are). b is in r, A g goes to q."""
     if ti.static(o.operator == "matrix_free"):
         for e in range(k.counts[1]):
             if k.parameters[WARM_START] != 0:
@@ -717,10 +735,27 @@ def _warm_start(k: ti.template(), o: ti.template()):
     mass_factor, stiffness_factor = factors(k)
     for b in range(_blocks(k)):
         if k.parameters[WARM_START] != 0:
+            gb, gq = 0.0, 0.0
+            begin, end = _block_nodes(k, b)
+            for v in range(begin, end):
+                qv = operator_row(k, o, v, k.dv, mass_factor, stiffness_factor)
+                k.q[v] = qv
+                gb += k.dv[v].dot(k.r[v])
+                gq += k.dv[v].dot(qv)
+            k.partial[0, b] = gb
+            k.partial[1, b] = gq
+    for _ in range(1):
+        if k.parameters[WARM_START] != 0:
+            gq = _sum_partials(k, 1)
+            k.scalars[ALPHA] = _sum_partials(k, 0) / gq if gq > 0 else 0.0
+    for b in range(_blocks(k)):
+        if k.parameters[WARM_START] != 0:
+            alpha = k.scalars[ALPHA]
             rz, rr = 0.0, 0.0
             begin, end = _block_nodes(k, b)
             for v in range(begin, end):
-                products = _set_residual(k, o, v, k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor))
+                k.dv[v] = alpha * k.dv[v]
+                products = _set_residual(k, o, v, k.r[v] - alpha * k.q[v])
                 rz += products[0]
                 rr += products[1]
             k.partial[0, b] = rz

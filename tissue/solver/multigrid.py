@@ -272,7 +272,10 @@ def apply(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()
     if ti.static(o.serial):
         # One thread: the stages as a runtime loop, so that each product with A is inlined once
         # (a kernel's size is what its compilation costs in every process).
+        # Skipped whole once converged: its loops would skip their nodes, but not the products.
         for stage in range(4):
+            if not _running(k):
+                break
             if stage == 0 or stage == 3:
                 _smooth(k, o, r, z, stage == 0)
             else:
