@@ -1,7 +1,7 @@
 """Start-up cost of `tissue run`: the command's wall time from empty caches and from caches filled by others.
 
     python -m bench.startup [--scenes incline liver_press liver beam] [--steps 10] [--arch cpu]
-    python -m bench.startup --versus COMMIT [--rounds 3] [--scenes ...] [--out NAME]
+    python -m bench.startup --versus COMMIT [--rounds 3] [--scenes ...] [--fill-also ...] [--out NAME]
 
 Each measurement runs `tissue run NAME --no-render --steps N --out TMP` as a subprocess, with the
 Taichi offline cache (TI_OFFLINE_CACHE_FILE_PATH) and the mesh cache (TISSUE_CACHE) in folders of
@@ -10,7 +10,8 @@ its own:
     warm    both caches filled first by runs of other scenes and settings: FILLERS and the other
             scenes of --scenes (each with its defaults), less the timed command itself: what a
             user meets on a new scene or a new setting. A contact scene among the others fills the
-            contact kernels it shares with the timed one (each filler runs --steps steps too)
+            contact kernels it shares with the timed one (each filler runs --steps steps too);
+            --fill-also adds scenes that fill the caches without being measured themselves
     again   the same command once more: everything cached
     taichi  Taichi's cache empty, the mesh cache holding this scene's meshes (procedural meshes are
             made once per machine): the issue's "from an empty Taichi cache"
@@ -122,12 +123,13 @@ def edit_timing(repeats: int = 50) -> dict:
                 add_ms=round(1e3 * float(np.median(adding[2:])), 3), kernels_compiled=compilation.count() - start)
 
 
-def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, info: dict, out: str) -> None:
+def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, info: dict, out: str,
+           fill_also: tuple[str, ...] = ()) -> None:
     """Each scene's cold, warm and again runs by this checkout and by `other`, alternately (see the docstring)."""
     import numpy as np
 
     def measure_all(checkout: Path) -> dict:
-        return {scene: {row["caches"]: row for row in measure(scene, steps, arch, checkout, tuple(scenes))}
+        return {scene: {row["caches"]: row for row in measure(scene, steps, arch, checkout, (*scenes, *fill_also))}
                 for scene in scenes}
 
     def describe(rows: dict) -> str:
@@ -157,6 +159,8 @@ def main(argv=None) -> None:
     parser.add_argument("--arch", default=os.environ.get("TISSUE_ARCH", "cpu"))
     parser.add_argument("--versus", metavar="COMMIT", help="the again runs, alternately with COMMIT's")
     parser.add_argument("--rounds", type=int, default=3, help="rounds of --versus (default 3)")
+    parser.add_argument("--fill-also", nargs="+", default=[], metavar="SCENE",
+                        help="scenes that also fill the caches before each warm run, unmeasured")
     parser.add_argument("--out", help="the JSON's name under bench/results (default startup, or startup_versus)")
     args = parser.parse_args(argv)
 
@@ -166,7 +170,8 @@ def main(argv=None) -> None:
     info = machine()
     print_machine(info)
     if args.versus:
-        versus(args.versus, args.scenes, args.rounds, args.steps, args.arch, info, args.out or "startup_versus")
+        versus(args.versus, args.scenes, args.rounds, args.steps, args.arch, info, args.out or "startup_versus",
+               tuple(args.fill_also))
         return
     print(f"{'scene':<12} {'caches':<6} {'wall s':>7} {'mesh s':>7} {'compile s':>9} {'of it JIT':>9} {'kernels':>7} "
           f"{'simulate s':>10} {'other s':>7}")
@@ -175,7 +180,7 @@ def main(argv=None) -> None:
           f"{edit['remove_ms']:.3f} ms, add {edit['add_ms']:.3f} ms (median), {edit['kernels_compiled']} kernels compiled")
     rows = []
     for scene in args.scenes:
-        for row in measure(scene, args.steps, args.arch, others=tuple(args.scenes)):
+        for row in measure(scene, args.steps, args.arch, others=(*args.scenes, *args.fill_also)):
             rows.append(row)
             print(f"{row['scene']:<12} {row['caches']:<6} {row['wall_s']:7.1f} {row['mesh_s']:7.2f} "
                   f"{row['compile_s']:9.1f} {row['machine_code_s']:9.1f} {row['kernels']:7d} {row['simulate_s']:10.2f} {row['other_s']:7.1f}",

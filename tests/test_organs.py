@@ -380,3 +380,33 @@ def test_colon_implicit_is_exact_near_the_surface_and_keeps_its_sign_beyond():
     # The radius (the distance to the centreline less the value) reaches the bound's largest, no more.
     radius = np.linalg.norm(p - curve[cKDTree(curve).query(p)[1]], axis=1) - plain
     assert 0.99 * organs._COLON_RADIUS_MAX < radius.max() <= organs._COLON_RADIUS_MAX
+
+
+def test_isosurface_is_pyvistas_pipeline_bit_for_bit():
+    """`tissue.mesh.isosurface` calls VTK's filters as pyvista's contour("marching_cubes"),
+    triangulate, clean, connectivity("largest"), smooth_taubin and decimate do (the organs' surfaces
+    were made through pyvista before): the same grid points, and the same points and triangles, on a
+    shape of two parts (a torus and a ball in its hole, dropped as the smaller)."""
+    import pyvista as pv
+
+    from tissue.mesh import isosurface
+
+    spacing, lo, dims = 0.04, (-1.2, -1.2, -0.6), (61, 61, 31)
+    grid, points = isosurface.sampling_grid(lo, dims, spacing)
+    reference = pv.ImageData(dimensions=dims, spacing=(spacing,) * 3, origin=lo)
+    assert np.array_equal(points, reference.points)
+    torus = np.hypot(np.hypot(points[:, 0], points[:, 1]) - 0.7, points[:, 2]) - 0.25
+    values = np.minimum(torus, np.linalg.norm(points, axis=1) - 0.2)
+    reference.point_data["f"] = values
+    theirs = reference.contour([0.0], scalars="f", method="marching_cubes").triangulate().clean()
+    theirs = theirs.connectivity("largest").clean().smooth_taubin(n_iter=10, pass_band=0.05)
+    mine = isosurface.smoothed_zero_level(grid, values, 10, pass_band=0.05)
+    reduction = 1.0 - 1000 / theirs.n_cells
+    for ours, pyvistas in ((mine, theirs), (isosurface.decimated(mine, reduction),
+                                            theirs.decimate(reduction, volume_preservation=True).triangulate().clean())):
+        points, triangles = isosurface.surface_arrays(ours)
+        assert np.array_equal(points, pyvistas.points)
+        assert np.array_equal(triangles, pyvistas.faces.reshape(-1, 4)[:, 1:])
+        assert directed_edges_ok(triangles)
+    assert 900 <= len(triangles) <= 1000 < theirs.n_cells
+    assert np.linalg.norm(points, axis=1).min() > 0.4       # the ball is gone

@@ -23,7 +23,7 @@ from .tetmesh import TetMesh
 
 # Bump by hand when the meshes change for a reason the hashed sources do not show.
 VERSION = "1"
-SOURCES = ("organs.py", "tetrahedralize.py", "closed_surface.py", "stuffing.py", "optimisation.py", "topology.py",
+SOURCES = ("organs.py", "isosurface.py", "tetrahedralize.py", "closed_surface.py", "stuffing.py", "optimisation.py", "topology.py",
            "quality.py", "tetmesh.py")
 
 

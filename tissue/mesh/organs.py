@@ -3,7 +3,7 @@ tetrahedral meshes.
 
 No patient data ships with `tissue`, so the abdomen of the paper's scenes is modelled: each organ is
 an implicit function (negative inside) sampled on a grid, its zero level extracted with marching
-cubes (pyvista), Taubin-smoothed, decimated to a few thousand triangles, and checked to be closed,
+cubes (VTK's, `tissue.mesh.isosurface`), Taubin-smoothed, decimated to a few thousand triangles, and checked to be closed,
 manifold and oriented outward (tests/test_organs.py also checks it is free of self-intersections).
 The shapes are deterministic; each surface is built once per process (about a second) and copied
 out.
@@ -132,6 +132,11 @@ _FUNDUS_RADII = np.array([0.044, 0.038, 0.042])
 # to about 3 (the implicits are near distances there: slope about 1).
 _SIGN_ONLY = 0.02
 
+# Leaf size of the k-d trees over a centreline's samples: the grid's hundreds of thousands of queries
+# each reach many of the dense samples, and scan larger leaves in fewer descents (the neighbours
+# found are the same for any leaf size).
+_CURVE_LEAF = 64
+
 
 def _stomach_implicit(p: np.ndarray) -> np.ndarray:
     """A sphere sweep along the J-shaped centreline, flattened front to back, smoothly joined
@@ -144,7 +149,7 @@ def _stomach_implicit(p: np.ndarray) -> np.ndarray:
     centre_y = curve[:, 1].mean()
     q = (p - [0.0, centre_y, 0.0]) * flatten
     c = (curve - [0.0, centre_y, 0.0]) * flatten
-    tree, dome, k = cKDTree(c), _ellipsoid(p, _FUNDUS_CENTRE, _FUNDUS_RADII), 0.015
+    tree, dome, k = cKDTree(c, leafsize=_CURVE_LEAF), _ellipsoid(p, _FUNDUS_CENTRE, _FUNDUS_RADII), 0.015
     # A lower bound of the value, cheap: the sweep is at least (distance to the nearest sphere
     # centre) − (largest radius), and the smooth maximum at most k/4 above the maximum. Where the
     # bound lies beyond _SIGN_ONLY the value only needs its sign (see _extract) and the bound is
@@ -196,7 +201,7 @@ def _colon_implicit(p: np.ndarray) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     curve, s = _sample_curve(_COLON_CENTRELINE, 800)
-    tree = cKDTree(curve)
+    tree = cKDTree(curve, leafsize=_CURVE_LEAF)
     value = _distance_lower_bound(tree, p) - _COLON_RADIUS_MAX
     near = value <= _SIGN_ONLY
     value[near] = _colon_value(p[near], tree, curve, s)
@@ -233,16 +238,14 @@ def _colon_value(p: np.ndarray, tree, curve: np.ndarray, s: np.ndarray) -> np.nd
 def _extract(implicit, lo, hi, grid_spacing: float, target_triangles: int, smooth_iterations: int = 20):
     """Marching cubes on a grid, largest component, Taubin smoothing, decimation; returns
     (points, triangles) oriented outward, checked closed and manifold."""
-    import pyvista as pv
-
     from .closed_surface import enclosed_volume, surface_edges_report
+    from .isosurface import decimated, sampling_grid, smoothed_zero_level, surface_arrays
 
     lo = np.asarray(lo, dtype=np.float64) - 3 * grid_spacing
     hi = np.asarray(hi, dtype=np.float64) + 3 * grid_spacing
     dims = np.ceil((hi - lo) / grid_spacing).astype(int) + 1
-    grid = pv.ImageData(dimensions=tuple(dims), spacing=(grid_spacing,) * 3, origin=tuple(lo))
-    # ImageData points run x fastest; evaluate the implicit on them in chunks.
-    pts = np.asarray(grid.points)
+    grid, pts = sampling_grid(lo, dims, grid_spacing)
+    # The grid's points run x fastest; evaluate the implicit on them in chunks.
     values = np.concatenate([implicit(pts[i:i + 400_000]) for i in range(0, len(pts), 400_000)])
     if values.min() >= 0:
         raise TissueError("procedural organ: the implicit shape is empty")
@@ -254,18 +257,12 @@ def _extract(implicit, lo, hi, grid_spacing: float, target_triangles: int, smoot
     # distance there, which marching cubes interpolates well (height-field implicits are steep).
     gradient = np.gradient(cube, grid_spacing)
     slope = np.sqrt(sum(g * g for g in gradient)).ravel()
-    grid.point_data["f"] = values / np.maximum(slope, 1e-3)
-    surf = grid.contour([0.0], scalars="f", method="marching_cubes").triangulate().clean()
-    surf = surf.connectivity("largest").clean()
-    surf = surf.smooth_taubin(n_iter=smooth_iterations, pass_band=0.05)
-    if surf.n_cells > target_triangles:
-        decimated = surf.decimate(1.0 - target_triangles / surf.n_cells, volume_preservation=True)
-        decimated = decimated.triangulate().clean()
-        tri = np.asarray(decimated.faces).reshape(-1, 4)[:, 1:]
-        if surface_edges_report(tri) == (0, 0, 0):
-            surf = decimated
-    points = np.asarray(surf.points, dtype=np.float64)
-    triangles = np.asarray(surf.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
+    surf = smoothed_zero_level(grid, values / np.maximum(slope, 1e-3), smooth_iterations, pass_band=0.05)
+    if surf.GetNumberOfCells() > target_triangles:
+        fewer = decimated(surf, 1.0 - target_triangles / surf.GetNumberOfCells())
+        if surface_edges_report(surface_arrays(fewer)[1]) == (0, 0, 0):
+            surf = fewer
+    points, triangles = surface_arrays(surf)
     boundary, non_manifold, misoriented = surface_edges_report(triangles)
     if boundary or non_manifold or misoriented:
         raise TissueError(f"procedural organ: surface extraction gave {boundary} open, {non_manifold} "
@@ -278,7 +275,7 @@ def _extract(implicit, lo, hi, grid_spacing: float, target_triangles: int, smoot
 @lru_cache(maxsize=None)
 def _cached(name: str):
     """The organ's surface, made once per machine (the mesh cache keeps it): a mesh of the organ
-    with another number of tetrahedra starts from it, without marching cubes (nor pyvista)."""
+    with another number of tetrahedra starts from it, without marching cubes (nor VTK)."""
     from .cache import cached_arrays
 
     surface = cached_arrays(lambda: dict(zip(("points", "triangles"), _surface(name))), ("points", "triangles"),

@@ -71,36 +71,34 @@ def tetrahedralize(surface_points, surface_triangles, target_tets: int | None = 
     if spacing is not None:
         if not np.isfinite(spacing) or spacing <= 0:
             raise TissueError(f"{source}: spacing must be positive, got {spacing}")
-        h = float(spacing)
-        shift = (0.0, 0.0, 0.0)
+        h, shift, stuffed = float(spacing), (0.0, 0.0, 0.0), None
     else:
         target = 2000 if target_tets is None else int(target_tets)
         if not 8 <= target <= _MAX_LATTICE_TETS // 10:
             raise TissueError(f"{source}: target_tets must be between 8 and {_MAX_LATTICE_TETS // 10:,}, "
                               f"got {target_tets}")
-        h, shift = _fit_spacing(surface, lo, hi, volume, target)
+        h, shift, stuffed = _fit_spacing(surface, lo, hi, volume, target)
     lattice_tets = 12 * np.prod(np.ceil((hi - lo) / h) + 3)
     if lattice_tets > _MAX_LATTICE_TETS:
         raise TissueError(f"{source}: the spacing {h:.3g} is too fine for a surface of extent "
                           f"{np.round(hi - lo, 6).tolist()} ({lattice_tets:.3g} lattice tetrahedra)")
-    x, tets = _mesh_at_spacing(surface, lo, hi, h, shift, _samples_for(points, triangles, h))
+    x, tets = stuffed or stuff(surface, lo, hi, h, shift)
+    if len(tets):
+        x, tets = _cleaned_and_optimised(x, tets, surface, *_samples_for(points, triangles, h))
     if len(tets) == 0:
         raise TissueError(f"{source}: the spacing {h:.3g} is too coarse to fill the surface with any "
                           "tetrahedron")
     return TetMesh(x, tets, source=source)
 
 
-def _mesh_at_spacing(surface: "SurfaceQueries", lo, hi, h: float, shift=(0.0, 0.0, 0.0), samples=None):
-    """The stuffed tetrahedra at lattice spacing h; with samples, cleaned and optimised."""
-    x, tets = stuff(surface, lo, hi, h, shift)
-    if samples is None or len(tets) == 0:
-        return x, tets
+def _cleaned_and_optimised(x, tets, surface: "SurfaceQueries", samples, sample_normals):
+    """Stuffed tetrahedra without non-manifold joints and specks, optimised."""
     tets = carve_nonmanifold(tets, len(x))
     if len(tets) == 0:
         return x[:0], tets
     tets = tets[drop_specks(tets, signed_volumes(x, tets))]
     x, tets = compact(x, tets)
-    return optimise(x, tets, surface, *samples)
+    return optimise(x, tets, surface, samples, sample_normals)
 
 
 def _samples_for(points, triangles, h: float):
@@ -111,18 +109,21 @@ def _samples_for(points, triangles, h: float):
 
 
 def _fit_spacing(surface: "SurfaceQueries", lo, hi, volume: float, target: int):
-    """(spacing, lattice shift) whose stuffed count is nearest the target: secant steps on
-    count ~ volume / h^3 (a BCC cube of edge h holds 12 tetrahedra), from a few lattice shifts
-    when the count jumps past the target (a lattice-aligned box gains whole layers at once)."""
+    """(spacing, lattice shift, the stuffing there) whose stuffed count is nearest the target:
+    secant steps on count ~ volume / h^3 (a BCC cube of edge h holds 12 tetrahedra), from a few
+    lattice shifts when the count jumps past the target (a lattice-aligned box gains whole layers
+    at once)."""
     h = (12.0 * volume / target) ** (1.0 / 3.0)
-    tried = []
+    tried, stuffed = [], {}
     for shift in _LATTICE_SHIFTS:
+        shift = tuple(shift)
         for _ in range(5):
-            count = len(_mesh_at_spacing(surface, lo, hi, h, shift)[1])
-            tried.append((abs(count - target), h, tuple(shift)))
+            stuffed[h, shift] = stuff(surface, lo, hi, h, shift)
+            count = len(stuffed[h, shift][1])
+            tried.append((abs(count - target), h, shift))
             if abs(count - target) <= 0.02 * target:
-                return h, shift
+                return h, shift, stuffed[h, shift]
             h *= (max(count, 1) / target) ** (1.0 / 3.0)
         h = min(tried)[1]
     _, h, shift = min(tried)
-    return h, shift
+    return h, shift, stuffed[h, shift]
