@@ -32,6 +32,7 @@ and the contact-force error between the two, in one run on this machine.
     python -m bench.contact --quick    # liver_press warped only, and the 450-row comparison
     python -m bench.contact --floor    # the floor scene's step taken apart (stages, launches, copies)
     python -m bench.contact --press-profile   # the same for liver_press
+    python -m bench.contact --press-sampled   # liver_press's CPU by part of the step, sampled on CPU time
 """
 
 import argparse
@@ -368,6 +369,68 @@ def step_profile(sim, steps: int = 100, settle: int = 40) -> dict:
             "python_functions": functions}
 
 
+def cpu_sampled(simulations: int = 16, settle: int = 8, steps: int = 72) -> dict:
+    """Where liver_press's pressed steps spend their CPU: a profile sampled on the process's CPU
+    time (ITIMER_PROF: the stack at each tick of CPU, ~4 ms here), over `steps` steps after `settle`
+    of each of `simulations` simulations. A wall-clock sampler would charge the time other jobs
+    hold the cores to whatever line was running; cProfile inflates the many small calls. Per part
+    of the step, CPU ms a step (the mean step) in the kernels (samples whose innermost Python frame
+    is a launch's) and on the host: the free motion, Newton's iterations, and the contact stage by
+    the call its step made (Python takes a signal at its next check, so a sample at the end of one
+    call may be charged to the next)."""
+    import signal
+
+    samples, active = [], [False]
+
+    def sample(_signal, frame):
+        if active[0]:
+            stack = []
+            while frame is not None:
+                stack.append((frame.f_code.co_filename, frame.f_code.co_name))
+                frame = frame.f_back
+            samples.append(stack)
+
+    previous = signal.signal(signal.SIGPROF, sample)
+    cpu = 0.0
+    try:
+        for _ in range(simulations):
+            sim = press("warped")
+            for _ in range(settle):
+                sim.step()
+            signal.setitimer(signal.ITIMER_PROF, 1e-3, 1e-3)
+            start, active[0] = time.process_time(), True
+            for _ in range(steps):
+                sim.step()
+            active[0] = False
+            cpu += time.process_time() - start
+            signal.setitimer(signal.ITIMER_PROF, 0, 0)
+    finally:
+        signal.signal(signal.SIGPROF, previous)
+    parts, kernels = Counter(), Counter()
+    for stack in samples:
+        part = _sampled_part(stack)
+        parts[part] += 1
+        path, name = stack[0]                   # in a launch: the Python frame that made it (Taichi's or a replay)
+        kernels[part] += name in ("launch_kernel", "__call__") and path.endswith(("launch.py", "kernel_impl.py"))
+    ms = 1e3 * cpu / (simulations * steps) / max(1, len(samples))      # a sample's share of a step
+    return {"cpu_ms_per_step": 1e3 * cpu / (simulations * steps), "samples": len(samples),
+            "parts": {part: {"kernels_ms": ms * kernels[part], "host_ms": ms * (n - kernels[part])}
+                      for part, n in parts.most_common()}}
+
+
+def _sampled_part(stack) -> str:
+    """The part of a step a sampled stack (innermost first) is in (see cpu_sampled)."""
+    if any(path.endswith("contact/newton.py") for path, _ in stack):
+        return "contact: Newton"
+    outer = stack[::-1]
+    at = next((i for i, (path, name) in enumerate(outer) if name == "step" and path.endswith("contact/pipeline.py")),
+              None)
+    if at is None:
+        in_layer = any(name == "step" and path.endswith("contact/layer.py") for path, name in stack)
+        return "contact: the layer (energy budget)" if in_layer else "free motion"
+    return "contact: " + (outer[at + 1][1] if at + 1 < len(outer) else "its step")
+
+
 def print_step_profile(p: dict, title: str) -> None:
     ms = p["ms_per_step"]
     print(f"\n{title}: rows {p['rows_median']:.0f}, CPU {p['cpu_ms_per_step']:.2f} ms/step; wall ms/step "
@@ -530,6 +593,8 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="liver_press warped and the 450-row comparison only")
     parser.add_argument("--floor", action="store_true", help="the floor scene's step taken apart only")
     parser.add_argument("--press-profile", action="store_true", help="liver_press's step taken apart only")
+    parser.add_argument("--press-sampled", action="store_true",
+                        help="liver_press's pressed steps' CPU by part, sampled on CPU time only")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -542,6 +607,13 @@ def main(argv=None) -> int:
             out[name] = step_profile(floor_scene("warped", control))
             print_step_profile(out[name], f"liver_floor, warped, {name}")
         write_results("contact-floor", out)
+        return 0
+    if args.press_sampled:
+        out["liver_press"] = sampled = cpu_sampled()
+        print(f"liver_press: {sampled['cpu_ms_per_step']:.2f} CPU ms a step (mean), {sampled['samples']} samples")
+        for part, v in sampled["parts"].items():
+            print(f"  {v['kernels_ms'] + v['host_ms']:6.3f} ms: kernels {v['kernels_ms']:6.3f}, host {v['host_ms']:6.3f}  {part}")
+        write_results("contact-press-sampled", out)
         return 0
     if args.press_profile:
         # both passes within the scene's 80 steps (3.2 s), pressed from the start (195-380 rows)

@@ -1214,16 +1214,19 @@ def compiled_kernel_instances() -> int:
     return sum(len(k.compiled_kernels) for k in gc.get_objects() if isinstance(k, Kernel))
 
 
-def test_contact_storage_grows_without_compiling(backend):
+def test_contact_storage_grows_without_compiling(backend, monkeypatch):
     """A sphere (r 4 cm) pressed into the face-sampled top of a clamped block: the rows grow
     several-fold as it goes deeper, and the stage's scratch with them (counted in its stats). Once
     each kernel has run (the first steps in contact), growing compiles nothing: the kernels take
     the scratch as ndarrays, of any size (a new field would compile every kernel taking it again).
-    Measured: 21 then 108 rows, 13 growths while pressing, no kernel compiled; with the scratch as
+    Measured: 21 then 108 rows, 13 growths while pressing (from a first room of 256; 37 from 16,
+    the room this test gives), no kernel compiled; with the scratch as
     fields (growing likewise), 7 kernel instances compiled while pressing."""
+    from tissue.contact import storage
     from tissue.contact.obstacles import RigidObstacle, Sphere
     from tissue.contact.pipeline import Contact, ContactStage
 
+    monkeypatch.setattr(storage, "FIRST_ROOM", 16)      # (the stage's default room holds these rows)
     mesh = block(cells=(6, 6, 2))
     solver = make_solver(mesh, gravity=(0, 0, 0), rayleigh_mass=5.0, rayleigh_stiffness=0.02,
                          fixed=np.flatnonzero(mesh.points[:, 2] == 0))
@@ -1258,8 +1261,11 @@ def test_replayed_contact_launches_equal_plain_ones(backend, monkeypatch, delass
     stepped twice from the same state: replayed, and with every launch through Taichi's own
     argument setting. Positions, velocities and contact forces equal bit for bit at every step."""
     from tissue import launch
+    from tissue.contact import storage
     from tissue.contact.obstacles import Plane, RigidObstacle, Sphere
     from tissue.contact.pipeline import Contact, ContactStage
+
+    monkeypatch.setattr(storage, "FIRST_ROOM", 16)      # (the stage's default room holds these rows)
 
     def run():
         lower = make_solver(block((0.1, 0.1, 0.05), (4, 4, 2)), rayleigh_mass=1.0)

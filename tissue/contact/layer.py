@@ -119,9 +119,11 @@ class ContactLayer:
     def step(self, sim) -> None:
         result = self.stage.step(time=sim.time + sim.dt)
         c = result.contacts
+        soft = np.flatnonzero(c.soft)
+        touched_softly = set(c.body[soft].tolist()) | set(c.other[soft].tolist())   # (one pass, not one per body)
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)
-            if budget is not None and len(c) and not (c.soft & ((c.body == i) | (c.other == i))).any():
+            if budget is not None and len(c) and i not in touched_softly:
                 budget.add_work(obstacle_work(result, i))
                 budget.add_allowance(contact_allowance(result, i, self.stage.settings.tolerance))
                 budget.close()

@@ -531,7 +531,7 @@ class ContactStage:
             if factored:
                 D = W.diagonal.copy()
                 D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
-                scale = float(np.mean(np.trace(D, axis1=1, axis2=2))) / 3.0
+                scale = float(np.mean(D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2])) / 3.0     # (np.trace's sums)
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
                 diagonal = np.diagonal(Wc).copy()

@@ -34,9 +34,10 @@ class HostArray(np.ndarray):
 
 
 # Elements a named array is first allocated with at least: a Taichi ndarray costs ~0.1 ms to
-# allocate, and each growth rebuilds the argpacks over it and records their launches again (the
-# pressed liver's per-row arrays grew 2-5 times each from its first contacts).
-FIRST_ROOM = 256
+# allocate, and each growth rebuilds the argpacks over it and records their launches again, 1-3 ms
+# a step that grows (the pressed liver's per-row arrays grew 2-5 times each from its first
+# contacts; from 256, its per-row and per-block arrays still grew once each, at 85 contacts).
+FIRST_ROOM = 1024
 
 
 def _numpy_type(dtype):
