@@ -721,10 +721,7 @@ def _guess(k: ti.template(), v):
 
 @ti.func
 def _warm_start(k: ti.template(), o: ti.template()):
-    """Warm: dv = α g from the guess g in dv, α = gᵀb / gᵀAg, the multiple of g nearest the solution
-    in A's norm (never farther than zero or g itself: the guess of a settling body, whose b
-    shrinks, overshoots); then r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold,
-    dv = 0: as they are). b is in r, A g goes to q."""
+    """Warm: r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
     if ti.static(o.operator == "matrix_free"):
         for e in range(k.counts[1]):
             if k.parameters[WARM_START] != 0:
@@ -735,27 +732,10 @@ def _warm_start(k: ti.template(), o: ti.template()):
     mass_factor, stiffness_factor = factors(k)
     for b in range(_blocks(k)):
         if k.parameters[WARM_START] != 0:
-            gb, gq = 0.0, 0.0
-            begin, end = _block_nodes(k, b)
-            for v in range(begin, end):
-                qv = operator_row(k, o, v, k.dv, mass_factor, stiffness_factor)
-                k.q[v] = qv
-                gb += k.dv[v].dot(k.r[v])
-                gq += k.dv[v].dot(qv)
-            k.partial[0, b] = gb
-            k.partial[1, b] = gq
-    for _ in range(1):
-        if k.parameters[WARM_START] != 0:
-            gq = _sum_partials(k, 1)
-            k.scalars[ALPHA] = _sum_partials(k, 0) / gq if gq > 0 else 0.0
-    for b in range(_blocks(k)):
-        if k.parameters[WARM_START] != 0:
-            alpha = k.scalars[ALPHA]
             rz, rr = 0.0, 0.0
             begin, end = _block_nodes(k, b)
             for v in range(begin, end):
-                k.dv[v] = alpha * k.dv[v]
-                products = _set_residual(k, o, v, k.r[v] - alpha * k.q[v])
+                products = _set_residual(k, o, v, k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor))
                 rz += products[0]
                 rr += products[1]
             k.partial[0, b] = rz
