@@ -640,11 +640,16 @@ def _stop_before_preconditioning(k: ti.template()):
     """The stopping rule of _next_direction, taken where _descend left ‖r‖² (partial[1]), so that
     the last iteration's V-cycle, whose z nothing reads, is skipped (one thread)."""
     if k.scalars[DONE] == 0:
-        tol = k.parameters[TOLERANCE]
-        if _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or \
-                k.scalars[ITERATION] + 1 >= k.parameters[MAX_ITERATIONS]:
+        if _stops(k, k.scalars[ITERATION] + 1):
             k.scalars[ITERATION] = k.scalars[ITERATION] + 1
             k.scalars[DONE] = 1
+
+
+@ti.func
+def _stops(k: ti.template(), iterations):
+    """CG's stopping rule: ‖r‖² (partial[1]) ≤ tol² ‖b‖², or `iterations` at the cap."""
+    tol = k.parameters[TOLERANCE]
+    return _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or iterations >= k.parameters[MAX_ITERATIONS]
 
 
 @ti.func
@@ -813,9 +818,7 @@ def _next_direction(k: ti.template()):
             k.scalars[DELTA] = delta
             k.scalars[ITERATION] = k.scalars[ITERATION] + 1
             k.scalars[BETA] = delta / k.scalars[DELTA_OLD]
-            tol = k.parameters[TOLERANCE]
-            if _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or \
-                    k.scalars[ITERATION] >= k.parameters[MAX_ITERATIONS]:
+            if _stops(k, k.scalars[ITERATION]):
                 k.scalars[DONE] = 1
     for v in range(k.counts[0]):
         if k.scalars[DONE] == 0:
