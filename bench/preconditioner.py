@@ -74,22 +74,25 @@ def curve(solver, x, v, dv_ref, cap: int, repeats: int = 3) -> dict:
     """Wall time from the step's start and error of dv after k = 0, 1, ... CG iterations."""
     import taichi as ti
 
+    from tissue.solver.implicit_euler import BEGIN_PARALLEL, ITERATE_PARALLEL
+
     norm = np.linalg.norm(dv_ref)
     samples, errors = [], []
     for repeat in range(repeats + 1):            # the first run compiles: excluded
         solver.set_state(x, v)
         ti.sync()
         start = time.perf_counter()
-        solver._begin_parallel()
+        k, o, tol = solver.prepare_step()
+        BEGIN_PARALLEL(k, o, tol)
         ti.sync()
         times = [time.perf_counter() - start]
         errors = [1.0]
         for _ in range(cap if repeat else 1):
             start = time.perf_counter()
-            solver._iterate_parallel()
+            ITERATE_PARALLEL(k, o)
             ti.sync()
             times.append(times[-1] + time.perf_counter() - start)
-            errors.append(float(np.linalg.norm(solver.dv.to_numpy().reshape(-1) - dv_ref) / norm))
+            errors.append(float(np.linalg.norm(solver.arrays["dv"].to_numpy()[:len(x)].reshape(-1) - dv_ref) / norm))
             if errors[-1] < 0.1 * TARGET:
                 break
         if repeat:
