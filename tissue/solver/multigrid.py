@@ -38,7 +38,7 @@ from . import implicit_euler as ie
 from .reference import rest_matrix
 
 # Chebyshev targets [λ/15, λ]: the part of the spectrum the coarse space misses. Against [λ/30, λ],
-# 4-13 % fewer CG iterations per scene at the same cost each (docs/performance.md, branch free2).
+# 2-13 % fewer CG iterations per scene at the same cost each (docs/performance.md, branch free2).
 SMOOTHING_RANGE = 15.0
 LAMBDA_MARGIN = 1.1      # above the estimated λ_max of D₀⁻¹A₀, for rotations and the estimate's error
 
