@@ -169,7 +169,7 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     idx = np.arange(a)
     J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
     shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
-    J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
+    J.ravel()[::k + 1] += shift * max(np.abs(np.diag(J)).sum() / k, 1e-300)   # (its diagonal: J is contiguous)
     # Once few contacts change state from one step to the next, J differs from the last factorised
     # one in their rows (and columns, for those that close or open), the sliding contacts' slip
     # directions and the shift: GMRES preconditioned by the last LU then takes a few O(k²)
