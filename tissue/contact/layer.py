@@ -91,8 +91,9 @@ class Obstacle(Options):
         """time -> translation, or None for a static obstacle."""
         if not self.keyframes:
             return None
-        k = np.asarray(self.keyframes, dtype=np.float64).reshape(-1, 4)
-        return lambda t: np.array([np.interp(t, k[:, 0], k[:, 1 + i]) for i in range(3)])
+        # Each column contiguous: np.interp copies a strided one at every call.
+        times, *axes = np.asarray(self.keyframes, dtype=np.float64).reshape(-1, 4).T.copy()
+        return lambda t: np.array([np.interp(t, times, axis) for axis in axes])
 
     def build(self, name: str) -> RigidObstacle:
         try:
