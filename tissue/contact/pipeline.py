@@ -479,8 +479,8 @@ class ContactStage:
         q_offset = offsets(sizes ** 2)[:-1]
         row = np.concatenate([p[0] for p in parts])
         col = np.concatenate([y_offset[k] + 3 * p[1] for k, p in enumerate(parts)])
-        segment = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
-        order = np.argsort(row, kind="stable")
+        segment = np.arange(len(parts)).repeat([len(p[0]) for p in parts])
+        order = row.argsort(kind="stable")
         n_block_rows = rows.n_rows // 3
         blocks = self._buffer("blocks", len(row), self._np, (3, 3))      # whole buffers: the launches replay
         pos = self._buffer("pos", len(row), np.int32)
@@ -531,7 +531,7 @@ class ContactStage:
             if factored:
                 D = W.diagonal.copy()
                 D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
-                scale = float(np.mean(D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2])) / 3.0     # (np.trace's sums)
+                scale = float((D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]).sum() / len(D)) / 3.0   # (np.trace's sums, np.mean's)
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
                 diagonal = np.diagonal(Wc).copy()
