@@ -113,7 +113,7 @@ class ConstraintRows:
 
     def body_matrix(self, body: int, n_nodes: int) -> sp.csr_matrix:
         """Body `body`'s block of H as a sparse (n_rows × 3 n_nodes) matrix."""
-        sel = np.flatnonzero(self.body == body)
+        sel = (self.body == body).nonzero()[0]
         r = np.broadcast_to((3 * self.block[sel])[:, None, None] + np.arange(3)[:, None], (len(sel), 3, 3))
         c = np.broadcast_to((3 * self.node[sel])[:, None, None] + np.arange(3), (len(sel), 3, 3))
         return sp.csr_matrix((self.value[sel].ravel(), (r.ravel(), c.ravel())), shape=(self.n_rows, 3 * n_nodes))
@@ -140,7 +140,7 @@ def jacobian(contacts: Contacts, attachments=(), frictionless=None) -> Constrain
         directions = frames * np.where(np.asarray(frictionless)[:, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
     # The point's own blocks u_j d (weights 0 left out), then the other triangle's -w_j d.
     kk, jj = (contacts.own_weights != 0).nonzero()
-    soft = np.flatnonzero(contacts.soft)
+    soft = contacts.soft.nonzero()[0]
     block, body, node = [kk], [contacts.body[kk]], [contacts.nodes[kk, jj]]
     value = [contacts.own_weights[kk, jj, None, None] * directions[kk]]
     if len(soft):
@@ -175,7 +175,7 @@ def with_free_values(rows: ConstraintRows, contacts: Contacts, free, prev, attac
     at the start of the step."""
     k = rows.n_contacts
     moved = _displacements(free, prev)
-    soft = np.flatnonzero(contacts.soft)
+    soft = contacts.soft.nonzero()[0]
     disp = -contacts.other_motion
     if k:
         disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved(contacts.body, contacts.nodes))
@@ -237,7 +237,7 @@ class JaggedDiagonal:
     """
 
     def __init__(self, rows: ConstraintRows, body: int):
-        sel = np.flatnonzero(rows.body == body)
+        sel = (rows.body == body).nonzero()[0]      # (np.flatnonzero's wrappers cost more than it)
         t = rows.block[sel]
         real = np.float64 if backend.current().real == ti.f64 else np.float32
         self.nnz = len(t)
@@ -256,7 +256,7 @@ class JaggedDiagonal:
         # the node ids, not np.unique's sort: a few hundred entries on a few hundred nodes.)
         present = np.zeros(int(self.node.max(initial=-1)) + 1, bool)
         present[self.node] = True
-        self.touched = np.flatnonzero(present).astype(np.int32)
+        self.touched = present.nonzero()[0].astype(np.int32)
         index = np.empty(len(present), np.int32)
         index[self.touched] = np.arange(len(self.touched), dtype=np.int32)
         self.local = index[self.node]

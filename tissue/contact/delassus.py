@@ -65,7 +65,7 @@ class FactoredDelassus:
         segment, then P y."""
         R = np.asarray(r, dtype=np.float64).reshape(-1, 3)
         row, dofs, rows = self._structure
-        pushed = np.flatnonzero(R[row].any(axis=1))
+        pushed = R[row].any(axis=1).nonzero()[0]
         z = np.bincount(dofs[pushed].ravel(), np.einsum("eab,ea->eb", self.blocks[pushed], R[row[pushed]]).ravel(),
                         minlength=self.y_offset[-1])
         y = np.zeros_like(z)

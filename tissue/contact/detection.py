@@ -668,7 +668,7 @@ class Detector:
         # (none: 1e300, or inf in float32; np.nonzero over the 2-d mask costs twice this)
         hit = buffer.array[:, :, 0] < 1e299
         hit[buffer.room_rows] = False
-        row, slot = np.divmod(np.flatnonzero(hit), buffer.array.shape[1])
+        row, slot = np.divmod(hit.ravel().nonzero()[0], buffer.array.shape[1])
         res = buffer.array[row, slot].astype(np.float64, copy=False)
         soft = slot >= no
         if soft.any():

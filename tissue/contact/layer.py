@@ -120,7 +120,7 @@ class ContactLayer:
     def step(self, sim) -> None:
         result = self.stage.step(time=sim.time + sim.dt)
         c = result.contacts
-        soft = np.flatnonzero(c.soft)
+        soft = c.soft.nonzero()[0]
         touched_softly = set(c.body[soft].tolist()) | set(c.other[soft].tolist())   # (one pass, not one per body)
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)

@@ -151,12 +151,12 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     `cols` (ids); shared: a _Shared kept between the steps of one solve."""
     shared = _Shared() if shared is None else shared
     dr = -phi.copy()
-    act = np.flatnonzero(closing)
+    act = closing.nonzero()[0]
     if not len(act):
         return dr
     a, k = len(act), 3 * len(act)
     rhs = -phi[act]
-    carry = np.flatnonzero(~closing & (r != 0).any(axis=1))      # separating, still pushing: dr = -r
+    carry = (~closing & (r != 0).any(axis=1)).nonzero()[0]      # separating, still pushing: dr = -r
     if shared.closing is None or not np.array_equal(shared.closing, act):
         all_closing = a == len(phi) and isinstance(W, np.ndarray)                  # (no copy)
         shared.closing, shared.Waa, shared.carry = act, W if all_closing else W_block(act, act), None

@@ -433,7 +433,7 @@ class ContactStage:
         rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
         if self.jaws:
             rows = self._with_jaws(rows, contacts, mu == 0)
-        touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
+        touched = np.bincount(rows.body, minlength=len(self.compliance)).nonzero()[0].tolist()
         jds = {b: JaggedDiagonal(rows, b) for b in touched} if self.settings.compliance == "warped" else None
         self._kept = _KeptRows(contacts, keys, given, attachments, rows, mu, touched, jds)
         return self._kept
@@ -443,7 +443,7 @@ class ContactStage:
         point moving along d closes the gap), at the jaw's one node (a frictionless contact's
         tangent rows stay empty, as on the soft side)."""
         jaw = np.where(contacts.soft, -1, contacts.other - self._first_jaw)
-        on = np.flatnonzero(jaw >= 0)
+        on = (jaw >= 0).nonzero()[0]
         if not len(on):
             return rows
         value = rows.frames[on] * np.where(frictionless[on, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
@@ -526,7 +526,7 @@ class ContactStage:
             # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
             # (with μ = 0 it never uses them: r_t = 0).
             if self._frictionless[0] is not mu:             # (μ is the kept rows' at rest)
-                self._frictionless = (mu, np.flatnonzero(mu == 0))
+                self._frictionless = (mu, (mu == 0).nonzero()[0])
             t = self._frictionless[1]
             if factored:
                 D = W.diagonal.copy()
@@ -557,7 +557,7 @@ class ContactStage:
                 else:
                     warm = np.zeros((rows.n_contacts, 3))
                     if len(self._warm_keys):
-                        pos = np.searchsorted(self._warm_keys, keys)
+                        pos = self._warm_keys.searchsorted(keys)
                         pos = np.minimum(pos, len(self._warm_keys) - 1)
                         hit = self._warm_keys[pos] == keys
                         warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], impulses[pos[hit]])
