@@ -570,7 +570,7 @@ class WarpedCompliance:
         Qb, ld_before = Q, 0
         if before is not None and self.source is None and len(before[2]):
             Qb, q_before, touched = before
-            at = np.minimum(np.searchsorted(touched, self.jds.touched), len(touched) - 1)
+            at = np.minimum(touched.searchsorted(self.jds.touched), len(touched) - 1)
             index = np.where(touched[at] == self.jds.touched, at, -1).astype(np.int32)
             self._before = self.storage.put("before", index, ti.i32)
             self._sizes[Q_BEFORE], ld_before = q_before, 3 * len(touched) + 3 * self.free

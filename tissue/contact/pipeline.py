@@ -531,7 +531,7 @@ class ContactStage:
             if factored:
                 D = W.diagonal.copy()
                 D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
-                scale = float((D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]).sum() / len(D)) / 3.0   # (np.trace's sums, np.mean's)
+                scale = float((D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]).sum() / len(D)) / 3.0   # (np.trace's, np.mean's)
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
                 diagonal = np.diagonal(Wc).copy()
