@@ -276,8 +276,10 @@ class ContactStage:
         if self._given_mu is None or self._given_mu[0] != given:
             body_mu = np.array([np.nan if mu is None else mu for mu in given[1]])
             obstacle_mu = np.array([np.nan if mu is None else mu for mu in given[2]] or [np.nan])
-            self._given_mu = (given, body_mu, obstacle_mu)
-        _, body_mu, obstacle_mu = self._given_mu
+            self._given_mu = (given, body_mu, obstacle_mu, all(mu is None for mu in given[1] + given[2]))
+        _, body_mu, obstacle_mu, default_only = self._given_mu
+        if default_only:                            # (what the lines below give then)
+            return np.full(len(contacts), default, np.float64)
         own = body_mu[contacts.body]
         if not contacts.soft.any():                 # soft–rigid only: the last line's choice made
             other = obstacle_mu[contacts.other]
@@ -530,7 +532,8 @@ class ContactStage:
             t = self._frictionless[1]
             if factored:
                 D = W.diagonal.copy()
-                D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
+                if len(t):
+                    D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
                 scale = float((D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]).sum() / len(D)) / 3.0   # (np.trace's, np.mean's)
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
