@@ -67,9 +67,9 @@ class Attachment:
 
 def offsets(counts) -> np.ndarray:
     """[0, c₀, c₀ + c₁, ...] (int64): where each of consecutive runs of `counts` starts, and the
-    end. (np.r_[0, np.cumsum(counts)] costs tens of µs; this a few.)"""
+    end. (np.r_[0, np.cumsum(counts)] costs tens of µs; this one or two.)"""
     out = np.zeros(len(counts) + 1, np.int64)
-    np.cumsum(counts, out=out[1:])
+    np.add.accumulate(counts, dtype=np.int64, out=out[1:])      # (np.cumsum's, without its wrapper)
     return out
 
 
@@ -113,7 +113,7 @@ class ConstraintRows:
 
     def body_matrix(self, body: int, n_nodes: int) -> sp.csr_matrix:
         """Body `body`'s block of H as a sparse (n_rows × 3 n_nodes) matrix."""
-        sel = np.flatnonzero(self.body == body)
+        sel = (self.body == body).nonzero()[0]
         r = np.broadcast_to((3 * self.block[sel])[:, None, None] + np.arange(3)[:, None], (len(sel), 3, 3))
         c = np.broadcast_to((3 * self.node[sel])[:, None, None] + np.arange(3), (len(sel), 3, 3))
         return sp.csr_matrix((self.value[sel].ravel(), (r.ravel(), c.ravel())), shape=(self.n_rows, 3 * n_nodes))
@@ -136,18 +136,18 @@ def jacobian(contacts: Contacts, attachments=(), frictionless=None) -> Constrain
     k = len(contacts)
     frames = tangent_frames(contacts.normal) if k else np.zeros((0, 3, 3))
     directions = frames
-    if frictionless is not None and np.any(frictionless):
+    if frictionless is not None and np.asarray(frictionless).any():
         directions = frames * np.where(np.asarray(frictionless)[:, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
     # The point's own blocks u_j d (weights 0 left out), then the other triangle's -w_j d.
-    kk, jj = np.nonzero(contacts.own_weights != 0)
-    soft = np.flatnonzero(contacts.soft)
+    kk, jj = (contacts.own_weights != 0).nonzero()
+    soft = contacts.soft.nonzero()[0]
     block, body, node = [kk], [contacts.body[kk]], [contacts.nodes[kk, jj]]
     value = [contacts.own_weights[kk, jj, None, None] * directions[kk]]
     if len(soft):
-        block.append(np.repeat(soft, 3))
-        body.append(np.repeat(contacts.other[soft], 3))
+        block.append(soft.repeat(3))
+        body.append(contacts.other[soft].repeat(3))
         node.append(contacts.triangle[soft].ravel())
-        value.append(-contacts.weights[soft].reshape(-1)[:, None, None] * np.repeat(directions[soft], 3, axis=0))
+        value.append(-contacts.weights[soft].reshape(-1)[:, None, None] * directions[soft].repeat(3, axis=0))
     eye = np.eye(3)[None] if attachments else None
     for a, att in enumerate(attachments):
         t = k + a
@@ -175,7 +175,7 @@ def with_free_values(rows: ConstraintRows, contacts: Contacts, free, prev, attac
     at the start of the step."""
     k = rows.n_contacts
     moved = _displacements(free, prev)
-    soft = np.flatnonzero(contacts.soft)
+    soft = contacts.soft.nonzero()[0]
     disp = -contacts.other_motion
     if k:
         disp += np.einsum("kj,kjc->kc", contacts.own_weights, moved(contacts.body, contacts.nodes))
@@ -237,11 +237,11 @@ class JaggedDiagonal:
     """
 
     def __init__(self, rows: ConstraintRows, body: int):
-        sel = np.flatnonzero(rows.body == body)
+        sel = (rows.body == body).nonzero()[0]      # (np.flatnonzero's wrappers cost more than it)
         t = rows.block[sel]
         real = np.float64 if backend.current().real == ti.f64 else np.float32
         self.nnz = len(t)
-        if len(t) and np.all(t[1:] > t[:-1]):
+        if len(t) and (t[1:] > t[:-1]).all():
             # At most one block per block row, in order (a body's vertices against obstacles): the
             # JDS is one jagged diagonal, the blocks as they are (what the general case gives).
             self.n_active = len(t)
@@ -256,7 +256,7 @@ class JaggedDiagonal:
         # the node ids, not np.unique's sort: a few hundred entries on a few hundred nodes.)
         present = np.zeros(int(self.node.max(initial=-1)) + 1, bool)
         present[self.node] = True
-        self.touched = np.flatnonzero(present).astype(np.int32)
+        self.touched = present.nonzero()[0].astype(np.int32)
         index = np.empty(len(present), np.int32)
         index[self.touched] = np.arange(len(self.touched), dtype=np.int32)
         self.local = index[self.node]
@@ -266,9 +266,9 @@ class JaggedDiagonal:
         """perm, count, jd_ptr and the entries (node, value, row) of the block rows `t` of the
         body's entries `sel`, sorted by their number of blocks."""
         n_block_rows = rows.n_rows // 3
-        by_row = np.argsort(t, kind="stable")         # a block row's entries keep their order
+        by_row = t.argsort(kind="stable")             # a block row's entries keep their order
         count = np.bincount(t, minlength=n_block_rows)
-        order = np.argsort(-count, kind="stable")
+        order = (-count).argsort(kind="stable")
         self.n_active = int(np.count_nonzero(count))
         position = np.empty(n_block_rows, dtype=np.int64)
         position[order] = np.arange(n_block_rows)
@@ -277,15 +277,18 @@ class JaggedDiagonal:
         rank[by_row] = np.arange(len(t)) - starts[t[by_row]]
         k_max = int(count.max(initial=0))
         # lengths[k]: the block rows with more than k blocks
-        lengths = len(count) - np.cumsum(np.bincount(count, minlength=k_max + 1)[:k_max])
+        lengths = len(count) - np.bincount(count, minlength=k_max + 1)[:k_max].cumsum()
         jd_ptr = offsets(lengths)
         index = jd_ptr[rank] + position[t]
         self.perm, self.count = order[:self.n_active].astype(np.int32), count[order[:self.n_active]].astype(np.int32)
         self.jd_ptr = jd_ptr.astype(np.int32)
-        self.node = np.empty(self.nnz, np.int32)
-        self.value = np.empty((self.nnz, 3, 3), real)
-        self.row = np.empty(self.nnz, np.int32)
-        self.node[index], self.value[index], self.row[index] = rows.node[sel], rows.value[sel], t
+        # The entries gathered in JDS order (entry e from `at[e]`; not scattered there: the 3×3
+        # values gathered once).
+        at = np.empty(self.nnz, np.int64)
+        at[index] = np.arange(self.nnz)
+        source = sel[at]
+        self.node, self.row = rows.node[source].astype(np.int32, copy=False), t[at]
+        self.value = rows.value[source].astype(real, copy=False)
 
     def to_dense(self, n_rows: int, n_nodes: int) -> np.ndarray:
         """The block as a dense (n_rows × 3 n_nodes) matrix, read back from the JDS arrays."""

@@ -54,23 +54,25 @@ class FactoredDelassus:
         return np.concatenate([self.ptr, self.col, self.segment, self.y_offset, self.q_offset]).astype(np.int32)
 
     @cached_property
-    def _structure(self) -> tuple[np.ndarray, np.ndarray]:
-        """The contact of each block, and the three dofs (columns) of each block (built once)."""
-        return np.repeat(np.arange(self.n), np.diff(self.ptr)), self.col[:, None] + np.arange(3)
+    def _structure(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The contact of each block, the three dofs (columns) of each block and its three rows
+        (built once)."""
+        row = np.repeat(np.arange(self.n), np.diff(self.ptr))
+        return row, self.col[:, None] + np.arange(3), (3 * row[:, None] + np.arange(3)).ravel()
 
     def __matmul__(self, r):
         """W r from the factors: z = Pᵀ r (the blocks of contacts with r ≠ 0), y = Q z per
         segment, then P y."""
         R = np.asarray(r, dtype=np.float64).reshape(-1, 3)
-        row, dofs = self._structure
-        pushed = np.flatnonzero(R[row].any(axis=1))
+        row, dofs, rows = self._structure
+        pushed = R[row].any(axis=1).nonzero()[0]
         z = np.bincount(dofs[pushed].ravel(), np.einsum("eab,ea->eb", self.blocks[pushed], R[row[pushed]]).ravel(),
                         minlength=self.y_offset[-1])
         y = np.zeros_like(z)
         for s, (y0, y1) in enumerate(zip(self.y_offset[:-1], self.y_offset[1:])):
             y[y0:y1] = self._segment_Q(s) @ z[y0:y1]
         u = np.einsum("eab,eb->ea", self.blocks, y[dofs])
-        return self.scale * np.bincount((3 * row[:, None] + np.arange(3)).ravel(), u.ravel(), minlength=3 * self.n)
+        return self.scale * np.bincount(rows, u.ravel(), minlength=3 * self.n)
 
     def _segment_Q(self, s: int) -> np.ndarray:
         d = self.y_offset[s + 1] - self.y_offset[s]
@@ -80,7 +82,7 @@ class FactoredDelassus:
     def _by_segment(self) -> dict:
         """Per segment s, its part of P (3n × the segment's dofs, CSR, indices sorted, explicit
         zeros kept), built once: `_P` takes rows of it."""
-        row, dofs = self._structure
+        row, dofs, _ = self._structure
         out = {}
         for s in np.unique(self.segment):
             on = self.segment == s

@@ -119,16 +119,6 @@ class Contacts:
         c = Contacts(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Contacts)))
         return c.take(np.lexsort((c.other, c.soft, c.sample, c.body)))
 
-    @staticmethod
-    def join(parts: list["Contacts"]) -> "Contacts":
-        """Concatenate parts that are already in order (no sort)."""
-        parts = [p for p in parts if len(p)]
-        if len(parts) == 1:
-            return parts[0]
-        if not parts:
-            return Contacts.empty()
-        return Contacts(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Contacts)))
-
     def take(self, index) -> "Contacts":
         return Contacts(*(getattr(self, f.name)[index] for f in fields(Contacts)))
 
@@ -451,7 +441,7 @@ def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
 class _Surface:
     """One body's constant detection data on the device, and its output buffer."""
 
-    def __init__(self, faces, samples, n_nodes, n_slots, real, npr):
+    def __init__(self, faces, samples, n_nodes, out, real, npr):
         nodes, weights = samples
         self.faces_np = faces
         self.n_samples = len(nodes)
@@ -472,7 +462,37 @@ class _Surface:
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
         self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
-        self.out = np.empty((self.n_samples + 1, n_slots, 11), npr)
+        self.out = out                            # its rows of the Detector's _HitBuffer
+
+
+class _HitBuffer:
+    """Every body's detection output in one buffer, body after body: a row per sample, then one
+    row where a soft launch leaves the room its triangle grid needed (out[-1]), each row a slot
+    per obstacle and per other body (11 numbers: see _detect_rigid, _detect_soft); and
+    what identifies a hit in each row and slot, so that the hits of every body are read at once
+    (a step's few dozen numpy calls once, not once per body and then joined)."""
+
+    def __init__(self, samples, faces, n_obstacles: int, soft_soft: bool, npr):
+        n_bodies = len(samples)
+        slots = max(n_obstacles + (n_bodies - 1 if soft_soft else 0), 1)
+        rows = [len(nodes) + 1 for nodes, _ in samples]
+        start = np.r_[0, np.cumsum(rows)]
+        self.array = np.full((start[-1], slots, 11), 1e300, npr)     # (in float32: inf)
+        self.outs = [self.array[start[b]:start[b + 1]] for b in range(n_bodies)]
+        self.room_rows = start[1:] - 1
+        self.body = np.repeat(np.arange(n_bodies, dtype=np.int32), rows)
+        self.sample = np.concatenate([np.arange(n, dtype=np.int32) for n in rows])
+        self.nodes = np.concatenate([np.r_[nodes, np.zeros((1, 3), np.int32)] for nodes, _ in samples])
+        self.weights = np.concatenate([np.r_[weights, np.zeros((1, 3), npr)] for _, weights in samples])
+        # What each slot of each body's rows touches: obstacle `slot`, or past the obstacles the
+        # other bodies in order; their triangles side by side (body b's from face_offset[b]).
+        self.other = np.tile(np.arange(slots, dtype=np.int32), (n_bodies, 1))
+        for a in range(n_bodies):
+            others = [b for b in range(n_bodies) if b != a] if soft_soft else []
+            self.other[a, n_obstacles:n_obstacles + len(others)] = others
+        self.faces = np.concatenate(faces)
+        self.face_offset = np.r_[0, np.cumsum([len(f) for f in faces])]
+        self.kept = None                          # the last hits without soft ones (Detector._identities)
 
 
 # The detection launch repeats its arguments step after step (the bodies' arrays, the buffers kept
@@ -516,7 +536,6 @@ class Detector:
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
-        self._kept_hits = {}                      # per body, its last hits on obstacles (_rigid_hits)
         self._bodies = None
         self.state, self._no_state = None, np.zeros((1, 6))
         self.storage = Storage()                  # per body, the ids of its triangle grid's cells
@@ -528,7 +547,6 @@ class Detector:
         nodes, weights = surface_samples(self.faces[body], self.sampling)
         self.samples[body] = (nodes, weights.astype(self._np))
         self._bodies = None
-        self._kept_hits.pop(body, None)
         self.serial = _serial(self.samples)
 
     def _field(self, body, positions):
@@ -544,9 +562,9 @@ class Detector:
     def _setup(self, fields_):
         sizes = [f.shape[0] for f in fields_]
         if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
-            slots = len(self.obstacles) + (len(fields_) - 1 if self.soft_soft else 0)
-            self._bodies = [_Surface(f, s, n, max(slots, 1), self.real, self._np)
-                            for f, s, n in zip(self.faces, self.samples, sizes)]
+            self._hits = _HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
+            self._bodies = [_Surface(f, s, n, out, self.real, self._np)
+                            for f, s, n, out in zip(self.faces, self.samples, sizes, self._hits.outs)]
 
     def detect(self, positions, alarm: float, poses=None, previous_poses=None, velocities=None,
                dt: float = 0.0) -> "Contacts":
@@ -566,7 +584,6 @@ class Detector:
             for o, (R, t) in enumerate(poses):
                 packed[o, :9], packed[o, 9:] = R.reshape(-1), t
             self._packed = tuple(poses)
-        parts = []
         sizes = [f.shape[0] for f in fields_]
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
             self.state = [np.empty((n, 6), np.float64) for n in sizes]
@@ -577,8 +594,7 @@ class Detector:
             for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
                 if obstacle.meshes:
                     self._mesh(a, x, o, obstacle, poses[o], out, alarm, v is not None)
-            parts.append(self._contacts(a, out, others, poses, previous_poses))
-        return Contacts.join(parts)
+        return self._contacts(poses, previous_poses)
 
     def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> np.ndarray:
         body, no = self._bodies[a], len(self.obstacles)
@@ -645,34 +661,27 @@ class Detector:
         res[better, :7] = np.column_stack([g, n @ R.T, c @ R.T + t])[better]
         res[better, 7:10], res[better, 10] = 0.0, -1.0
 
-    def _contacts(self, a, out, others, poses, previous_poses) -> "Contacts":
-        """The buffer's hits as Contacts, ordered by (sample, kind, other) (np.nonzero's order)."""
-        no = len(self.obstacles)
+    def _contacts(self, poses, previous_poses) -> "Contacts":
+        """Every body's hits (the buffer's) as Contacts, ordered by (body, sample, kind, other)
+        (np.nonzero's order over the buffer)."""
+        buffer, no = self._hits, len(self.obstacles)
         # (none: 1e300, or inf in float32; np.nonzero over the 2-d mask costs twice this)
-        s, slot = np.divmod(np.flatnonzero(out[:-1, :, 0] < 1e299), out.shape[1])
-        res = out[s, slot].astype(np.float64, copy=False)
-        k = len(s)
+        hit = buffer.array[:, :, 0] < 1e299
+        hit[buffer.room_rows] = False
+        row, slot = np.divmod(hit.ravel().nonzero()[0], buffer.array.shape[1])
+        res = buffer.array[row, slot].astype(np.float64, copy=False)
         soft = slot >= no
-        if others and soft.any():       # (the slots past the obstacles' are the other bodies')
-            hits = self._hits(a, s, slot, soft)
-            ob = np.asarray(others, np.int32)[slot[soft] - no]
-            hits["other"][soft] = ob
+        if soft.any():
+            hits = self._identities(row, slot, soft)
             face = res[soft, 10].astype(np.int64)
-            if len(others) == 1:                    # (two bodies: no grouping by body)
-                tri = self.faces[others[0]][face]
-            else:
-                tri = np.empty((len(ob), 3), np.int32)
-                for b in np.unique(ob):
-                    sel = ob == b
-                    tri[sel] = self.faces[b][face[sel]]
-            hits["triangle"][soft] = tri
+            hits["triangle"][soft] = buffer.faces[buffer.face_offset[hits["other"][soft]] + face]
             hits["weights"] = np.where(soft[:, None], res[:, 7:10], 0.0)
         else:
-            hits = self._rigid_hits(a, s, slot, soft)
+            hits = self._rigid_identities(row, slot, soft)
         point = res[:, 4:7]
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
-        motion = np.zeros((k, 3))
+        motion = np.zeros((len(row), 3))
         for j in self._moving_ids:              # (slot j < no: obstacle j)
             sel = slot == j
             if sel.any():
@@ -681,22 +690,23 @@ class Detector:
                 motion[sel] = p - ((p - t1) @ R1 @ R0.T + t0)
         return Contacts(**hits, normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)
 
-    def _hits(self, a, s, slot, soft) -> dict:
-        """What identifies body a's hits (sample s, slot): their Contacts fields body, sample,
-        nodes, own_weights, other, soft, triangle and weights (those of a hit on an obstacle)."""
-        nodes, weights = self.samples[a]
-        k = len(s)
-        return dict(body=np.full(k, a, np.int32), sample=s.astype(np.int32), nodes=nodes[s],
-                    own_weights=weights[s].astype(np.float64, copy=False), other=slot.astype(np.int32), soft=soft,
-                    triangle=np.full((k, 3), -1, np.int32), weights=np.zeros((k, 3)))
+    def _identities(self, row, slot, soft) -> dict:
+        """What identifies the hits in the buffer's rows `row` and slots `slot`: their Contacts
+        fields body, sample, nodes, own_weights, other, soft, triangle and weights (those of a hit
+        on an obstacle)."""
+        buffer, k = self._hits, len(row)
+        body = buffer.body[row]
+        return dict(body=body, sample=buffer.sample[row], nodes=buffer.nodes[row],
+                    own_weights=buffer.weights[row].astype(np.float64, copy=False), other=buffer.other[body, slot],
+                    soft=soft, triangle=np.full((k, 3), -1, np.int32), weights=np.zeros((k, 3)))
 
-    def _rigid_hits(self, a, s, slot, soft) -> dict:
-        """`_hits` of hits on obstacles alone: last step's arrays when the hits are the same (a
-        body at rest; the arrays are never written after), so that the contact stage finds them
-        the same at once."""
-        kept = self._kept_hits.get(a)
-        if kept is not None and kept[0].tobytes() == s.tobytes() and kept[1].tobytes() == slot.tobytes():
+    def _rigid_identities(self, row, slot, soft) -> dict:
+        """`_identities` of hits on obstacles alone: last step's arrays when the hits are the same
+        (a body at rest; the arrays are never written after), so that the contact stage finds
+        them the same at once."""
+        kept = self._hits.kept
+        if kept is not None and kept[0].tobytes() == row.tobytes() and kept[1].tobytes() == slot.tobytes():
             return dict(kept[2])
-        hits = self._hits(a, s, slot, soft)
-        self._kept_hits[a] = (s, slot, hits)
+        hits = self._identities(row, slot, soft)
+        self._hits.kept = (row, slot, hits)
         return dict(hits)

@@ -91,8 +91,9 @@ class Obstacle(Options):
         """time -> translation, or None for a static obstacle."""
         if not self.keyframes:
             return None
-        k = np.asarray(self.keyframes, dtype=np.float64).reshape(-1, 4)
-        return lambda t: np.array([np.interp(t, k[:, 0], k[:, 1 + i]) for i in range(3)])
+        # Each column contiguous: np.interp copies a strided one at every call.
+        times, *axes = np.asarray(self.keyframes, dtype=np.float64).reshape(-1, 4).T.copy()
+        return lambda t: np.array([np.interp(t, times, axis) for axis in axes])
 
     def build(self, name: str) -> RigidObstacle:
         try:
@@ -119,7 +120,7 @@ class ContactLayer:
     def step(self, sim) -> None:
         result = self.stage.step(time=sim.time + sim.dt)
         c = result.contacts
-        soft = np.flatnonzero(c.soft)
+        soft = c.soft.nonzero()[0]
         touched_softly = set(c.body[soft].tolist()) | set(c.other[soft].tolist())   # (one pass, not one per body)
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)

@@ -151,17 +151,17 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     `cols` (ids); shared: a _Shared kept between the steps of one solve."""
     shared = _Shared() if shared is None else shared
     dr = -phi.copy()
-    act = np.flatnonzero(closing)
+    act = closing.nonzero()[0]
     if not len(act):
         return dr
     a, k = len(act), 3 * len(act)
     rhs = -phi[act]
-    carry = np.flatnonzero(~closing & (r != 0).any(axis=1))      # separating, still pushing: dr = -r
-    if shared.closing is None or not np.array_equal(shared.closing, act):
+    carry = (~closing & (r != 0).any(axis=1)).nonzero()[0]      # separating, still pushing: dr = -r
+    if shared.closing is None or not _same(shared.closing, act):
         all_closing = a == len(phi) and isinstance(W, np.ndarray)                  # (no copy)
         shared.closing, shared.Waa, shared.carry = act, W if all_closing else W_block(act, act), None
     if len(carry):
-        if shared.carry is None or not np.array_equal(shared.carry, carry):
+        if shared.carry is None or not _same(shared.carry, carry):
             shared.carry, shared.Wac = carry, W_block(act, carry)
         rhs -= np.matmul(B[act], (shared.Wac @ dr[carry].ravel()).reshape(a, 3, 1))[:, :, 0]
     Waa = shared.Waa
@@ -169,7 +169,7 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     idx = np.arange(a)
     J.reshape(a, 3, a, 3)[idx, :, idx, :] += A[act]
     shift = boost * min(max(REGULARISATION, np.linalg.norm(phi)), MAX_SHIFT)
-    J[np.diag_indices(k)] += shift * max(np.mean(np.abs(np.diag(J))), 1e-300)
+    J.ravel()[::k + 1] += shift * max(np.abs(J.diagonal()).sum() / k, 1e-300)   # (its diagonal: J is contiguous)
     # Once few contacts change state from one step to the next, J differs from the last factorised
     # one in their rows (and columns, for those that close or open), the sliding contacts' slip
     # directions and the shift: GMRES preconditioned by the last LU then takes a few O(k²)
@@ -194,6 +194,12 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
         shared.state = state
     dr[act] = x.reshape(-1, 3)
     return dr
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """np.array_equal(a, b) of two index arrays, without its Python overhead (a few µs a call, a
+    few calls a Newton step on ~100 contacts)."""
+    return a.shape == b.shape and bool((a == b).all())
 
 
 def _lu_solve(J, b):
@@ -339,11 +345,12 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
         if anchor is not None and inner and np.linalg.norm(phi) <= PROXIMAL_INNER * np.sqrt(err2):
             anchor, inner, ue = r.copy(), 0, u
             phi, A, B = _alart_curnier(r, ue, mu, rho)
-        merit = 0.5 * np.sum(phi * phi)
+        merit = 0.5 * (phi * phi).sum()
         closing = r[:, 0] - rho * ue[:, 0] > 0
         # Newton's linear solves need be no more exact than Φ's progress shows the model to be
         # (Eisenstat & Walker 1996, choice 2): loose while states change and Φ falls slowly.
-        forcing = FORCING[0] if previous is None else float(np.clip(0.9 * (2.0 * merit / previous ** 2), *FORCING))
+        low, high = FORCING
+        forcing = low if previous is None else float(min(max(0.9 * (2.0 * merit / previous ** 2), low), high))
         previous = np.sqrt(2.0 * merit)
         if anchor is None:
             dr = newton_step(W, W_block, r, phi, A, B, closing, boost, shared, forcing)
@@ -357,7 +364,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
         t, accepted = 1.0, False
         for _ in range(BACKTRACKS):
             trial = _alart_curnier(r + t * dr, ue + t * du, mu, rho, jacobian=False)[0]
-            if 0.5 * np.sum(trial * trial) <= (1.0 - 2.0 * ARMIJO * t) * merit:
+            if 0.5 * (trial * trial).sum() <= (1.0 - 2.0 * ARMIJO * t) * merit:
                 accepted = True
                 break
             t *= 0.5

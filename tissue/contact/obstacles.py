@@ -167,7 +167,7 @@ def as_pose(value) -> tuple[np.ndarray, np.ndarray]:
         else:
             raise TissueError("motion: a pose is a translation (3,), a pair (R, t) or a 4×4 matrix; "
                               f"got shape {a.shape}")
-    if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+    if R.shape != (3, 3) or t.shape != (3,) or not (np.isfinite(R).all() and np.isfinite(t).all()):
         raise TissueError("motion: the pose must be a finite 3×3 rotation and a translation (3,)")
     return R, t
 

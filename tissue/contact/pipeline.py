@@ -276,8 +276,10 @@ class ContactStage:
         if self._given_mu is None or self._given_mu[0] != given:
             body_mu = np.array([np.nan if mu is None else mu for mu in given[1]])
             obstacle_mu = np.array([np.nan if mu is None else mu for mu in given[2]] or [np.nan])
-            self._given_mu = (given, body_mu, obstacle_mu)
-        _, body_mu, obstacle_mu = self._given_mu
+            self._given_mu = (given, body_mu, obstacle_mu, all(mu is None for mu in given[1] + given[2]))
+        _, body_mu, obstacle_mu, default_only = self._given_mu
+        if default_only:                            # (what the lines below give then)
+            return np.full(len(contacts), default, np.float64)
         own = body_mu[contacts.body]
         if not contacts.soft.any():                 # soft–rigid only: the last line's choice made
             other = obstacle_mu[contacts.other]
@@ -433,7 +435,7 @@ class ContactStage:
         rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
         if self.jaws:
             rows = self._with_jaws(rows, contacts, mu == 0)
-        touched = np.flatnonzero(np.bincount(rows.body, minlength=len(self.compliance))).tolist()
+        touched = np.bincount(rows.body, minlength=len(self.compliance)).nonzero()[0].tolist()
         jds = {b: JaggedDiagonal(rows, b) for b in touched} if self.settings.compliance == "warped" else None
         self._kept = _KeptRows(contacts, keys, given, attachments, rows, mu, touched, jds)
         return self._kept
@@ -443,7 +445,7 @@ class ContactStage:
         point moving along d closes the gap), at the jaw's one node (a frictionless contact's
         tangent rows stay empty, as on the soft side)."""
         jaw = np.where(contacts.soft, -1, contacts.other - self._first_jaw)
-        on = np.flatnonzero(jaw >= 0)
+        on = (jaw >= 0).nonzero()[0]
         if not len(on):
             return rows
         value = rows.frames[on] * np.where(frictionless[on, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
@@ -479,8 +481,8 @@ class ContactStage:
         q_offset = offsets(sizes ** 2)[:-1]
         row = np.concatenate([p[0] for p in parts])
         col = np.concatenate([y_offset[k] + 3 * p[1] for k, p in enumerate(parts)])
-        segment = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
-        order = np.argsort(row, kind="stable")
+        segment = np.arange(len(parts)).repeat([len(p[0]) for p in parts])
+        order = row.argsort(kind="stable")
         n_block_rows = rows.n_rows // 3
         blocks = self._buffer("blocks", len(row), self._np, (3, 3))      # whole buffers: the launches replay
         pos = self._buffer("pos", len(row), np.int32)
@@ -526,12 +528,13 @@ class ContactStage:
             # tangent rows; any positive diagonal there keeps the solver's 3×3 blocks definite
             # (with μ = 0 it never uses them: r_t = 0).
             if self._frictionless[0] is not mu:             # (μ is the kept rows' at rest)
-                self._frictionless = (mu, np.flatnonzero(mu == 0))
+                self._frictionless = (mu, (mu == 0).nonzero()[0])
             t = self._frictionless[1]
             if factored:
                 D = W.diagonal.copy()
-                D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
-                scale = float(np.mean(D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2])) / 3.0     # (np.trace's sums)
+                if len(t):
+                    D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
+                scale = float((D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]).sum() / len(D)) / 3.0   # (np.trace's, np.mean's)
                 scaled = replace(W, diagonal=D).scaled(1.0 / scale)
             else:
                 diagonal = np.diagonal(Wc).copy()
@@ -557,7 +560,7 @@ class ContactStage:
                 else:
                     warm = np.zeros((rows.n_contacts, 3))
                     if len(self._warm_keys):
-                        pos = np.searchsorted(self._warm_keys, keys)
+                        pos = self._warm_keys.searchsorted(keys)
                         pos = np.minimum(pos, len(self._warm_keys) - 1)
                         hit = self._warm_keys[pos] == keys
                         warm[hit] = np.einsum("kij,kj->ki", rows.frames[hit], impulses[pos[hit]])
