@@ -410,3 +410,43 @@ def test_accepted_gains_do_not_add_up(backend, ledger):
     else:
         assert rise[-1] == pytest.approx(50 * put_in, rel=1e-6)
         assert projections == 0
+
+
+def rest_cell(rotation: str = "polar"):
+    """The stability matrix's clamped beam sagging from rest onto its floor ("rest clamped"):
+    (its solver, the EnergyControl with the budget, the contact stage)."""
+    cell = next(c for c in stability.contact_cells((rotation,)) if c["case"] == "rest")
+    mesh = stability._mesh()
+    solver = start(cell)
+    return solver, EnergyControl(solver, budget=True), stability.contact_stage(cell, mesh, solver)
+
+
+def test_the_correction_residual_work_is_the_linear_systems(backend):
+    """The allowance's work of the warped correction's own residual, v₁ · (A dv_c − Hᵀλ), against
+    the step's implicit matrix assembled in scipy (tissue.solver.reference) at the step's start,
+    dv_c the velocities' change over the correction and Hᵀλ the contact impulses at the nodes
+    (scipy's H): equal to rounding, and not small on this beam (the warped compliance's
+    nodal rotations are not its elements')."""
+    from tissue.contact.layer import close_budget
+    from tissue.solver.reference import linearise
+
+    solver, control, stage = rest_cell()
+    for _ in range(5):
+        control.step()
+        close_budget(control.budget, stage.step(), 0, stage.settings.tolerance)
+    x0, v0 = solver.positions(), solver.velocities()
+    control.step()
+    v_free = solver.velocities()
+    result = stage.step()
+    v1 = solver.velocities()
+    close_budget(control.budget, result, 0, stage.settings.tolerance)
+    system = linearise(stability._mesh(), MATERIAL, x0, v0, solver.dt, gravity=stability.GRAVITY,
+                       rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness,
+                       rotation="polar")
+    H = result.rows.body_matrix(0, solver.model.n_nodes)
+    residual = system.A @ (v1 - v_free).reshape(-1) - H.T @ result.impulses
+    expected = float(v1.reshape(-1) @ residual)
+    work = solver.stats.counters["budget_correction"]
+    print(f"correction's residual work {work:.6e} J, scipy's {expected:.6e} J")
+    assert abs(expected) > 1e-7
+    assert work == pytest.approx(expected, rel=1e-9)

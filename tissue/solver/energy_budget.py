@@ -21,7 +21,8 @@ where it is over, projects the state back onto the budget:
 
 A step whose start itself is over the budget (an obstacle took work out) ends at its start, at
 rest (`budget_unresolved`). The solver's stats count `budget_projections` (closes that changed the
-state), `budget_removed` (J), `budget_allowance` (a, J) and `budget_ledger` (D after it, J).
+state), `budget_removed` (J), `budget_allowance` (a, J), `budget_ledger` (D after it, J) and
+`budget_correction` (the correction's residual work below, J).
 Costs: a copy of x and v at each step's start, a read of r and two of v (host views on the CPU),
 and, per projected step, a velocity write (and the search's energy launches when the kinetic
 energy cannot absorb it).
@@ -50,10 +51,19 @@ Its parts, each bounded by what the step knows:
     its natural-map residual, at most `tolerance` (m), at the step's end, as the last step's solve
     did at its start: a reaction's work beyond the exact one's is at most |λᵢ| / h times tolerance
     at each end, 2 tolerance Σ |λᵢ| / h (`tissue.contact.layer.contact_allowance`, `add_allowance`).
-    A reaction of a contact apart is itself within the residual and is not counted. The warped
-    compliance's own error (A dv_c ≠ Hᵀλ) works on v₁ too and is not bounded here: ~1e-10 J a
-    step on the settled floor scene, but 1.8e-6 J on the stability matrix's clamped beam resting
-    on its floor (2.3× the contact part), which stays projected (docs/stability.md).
+    A reaction of a contact apart is itself within the residual and is not counted.
+  - The contact correction's own residual. The correction moves the velocities by dv_c, which
+    should solve A dv_c = Hᵀλ (tissue.contact.compliance); so s = −r + Hᵀλ + (A dv_c − Hᵀλ), and
+    the last term, the correction's residual, works on v₁ as CG's does: v₁ · (A dv_c − Hᵀλ),
+    computed, not bounded (`add_correction`, `correction_work`). The warped compliance solves it
+    with nodal rotations in place of the elements' (A ≈ R A₀ Rᵀ), so it is not small: ~1e-10 J a
+    step on the settled floor scene, −0.8 to +3.8e-6 J on the stability matrix's clamped beam
+    resting on its floor (up to 5× the contact part there); the exact compliance, a factorisation
+    of this A, leaves rounding. A is the matrix of the step's last solve (its rotations) at the
+    step's dt (after halved steps, the dt the contact stage corrected with). The two computed
+    works make one sum, the work of s − Hᵀλ (the halves' at their own velocities), which the
+    allowance takes where > 0. Cost: K dv_c, a stiffness product in the energy evaluation the
+    close makes anyway (tissue.solver.step_control), and a read of v.
   - Rounding: E is a fixed-order sum of n terms (each node's kinetic and potential energy, each
     element's elastic energy), each good to a few ε of itself, the sum to (n − 1) ε Σ|terms|
     (Higham); at both ends of the step: 2 n ε (Σ|terms| at the start + at the end), Σ|terms|
@@ -75,6 +85,7 @@ steps' allowances, and the liver on the floor was held again until losses paid i
 import numpy as np
 
 from .. import backend
+from ..errors import TissueError
 
 PRECISION = 1e-3    # of the excess: the most the search back along the step removes beyond it
 SEARCHES = 20       # energy evaluations at most in that search
@@ -100,6 +111,8 @@ class EnergyBudget:
         self.ceiling = 0.0        # the largest allowance of a step so far (J): D's bound
         self._ledger_open = 0.0   # D at the current step's start
         self._contact = 0.0       # the contact stage's part of the allowance (J)
+        self._correction = None   # Hᵀλ (n, 3, N·s) of a contact correction since the last close
+        self._closed = None       # the velocities the last close of this step left
         self._solves = ()         # (r, −r · v at its end) of the step's solves
         self._start = None        # (x, v) at its start
         self._start_energy = 0.0  # E there (J)
@@ -114,6 +127,7 @@ class EnergyBudget:
         self._start = (self.solver.positions(), self.solver.velocities()) if state is None else state
         self._start_terms = self.control.terms if terms is None else terms
         self._ledger_open, self._contact, self._solves = self.ledger, 0.0, tuple(solves)
+        self._correction = self._closed = None
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""
@@ -124,15 +138,38 @@ class EnergyBudget:
         contact reactions')."""
         self._contact += joules
 
-    def allowance(self) -> float:
-        """a (J) at the solver's state, its energy the control's last evaluation (module docstring)."""
+    def add_correction(self, impulses: np.ndarray) -> None:
+        """The nodal impulses Hᵀλ (n, 3) of a contact correction that moved the velocities since
+        this step's last close: the allowance takes the work of its own residual A dv_c − Hᵀλ."""
+        if self._closed is None:
+            raise TissueError("add_correction: the step's free motion was not closed before its correction")
+        self._correction = impulses
+
+    def correction_work(self) -> tuple[tuple[float, float], float]:
+        """(the energy at the solver's state as `control.energy()` gives it, the work
+        v₁ · (A dv_c − Hᵀλ) of the correction's residual), in one energy launch, which takes
+        K dv_c too; dv_c: the velocities' change since the last close, A: the implicit matrix
+        of the step's last solve (its rotations, the step's dt)."""
+        solver = self.solver
+        v = solver.velocities()
+        dv = v - self._closed
+        energy = self.control.energy(times=dv)
+        A_dv = solver.mass_factor * solver.model.mass[:, None] * dv + solver.stiffness_factor * self.control.stiffness_product()
+        return energy, float((v * (A_dv - self._correction)).sum())
+
+    def allowance(self, correction: float | None = None) -> float:
+        """a (J) at the solver's state, its energy the control's last evaluation (module
+        docstring); `correction`: the work of the correction's residual where known (else
+        `correction_work()`'s, where there is a correction)."""
         solver = self.solver
         cg = sum(work for _, work in self._solves[:-1])
         if self._solves:
             cg -= float((self._solves[-1][0] * solver.velocities()).sum())
+        if correction is None and self._correction is not None:
+            correction = self.correction_work()[1]
         terms = solver.model.n_nodes + solver.model.n_elements
         rounding = 2 * terms * self.epsilon * (self._start_terms + self.control.terms)
-        return max(0.0, cg) + self._contact + rounding
+        return max(0.0, cg + (correction or 0.0)) + self._contact + rounding
 
     def room(self, allowance: float) -> float:
         """What the step may end with above its budget's base, its allowance `allowance`:
@@ -142,8 +179,12 @@ class EnergyBudget:
     def close(self, end: tuple[float, float] | None = None) -> None:
         """Project the step's end onto the budget; `end`: its (kinetic + elastic, potential) if
         known (else evaluated)."""
+        correction = None
+        if self._correction is not None:
+            end, correction = self.correction_work()
         inner, potential = self.control.energy() if end is None else end
-        allowance = self.allowance()
+        allowance = self.allowance(correction)
+        self._correction = None
         budget = self.allowed + self.room(allowance)
         self.ceiling = max(self.ceiling, allowance)
         energy = inner + potential
@@ -152,7 +193,9 @@ class EnergyBudget:
         if excess <= 0.0:
             self.ledger = max(0.0, self._ledger_open + energy - self.allowed)
             solver.stats.count(budget_projections=0, budget_removed=0.0, budget_unresolved=0,
-                               budget_allowance=allowance, budget_ledger=self.ledger)
+                               budget_allowance=allowance, budget_ledger=self.ledger,
+                               budget_correction=correction or 0.0)
+            self._closed = solver.velocities()
             return
         x, v = solver.positions(), solver.velocities()
         kinetic = self._kinetic(v)
@@ -163,9 +206,10 @@ class EnergyBudget:
         if excess > 0.0 and kinetic > 0.0:
             v = v * np.sqrt(max(0.0, 1.0 - excess / kinetic))
         solver.set_state(x, v)      # not evaluated: the next evaluation, if any, finds it changed
+        self._closed = v
         self.ledger = max(0.0, self._ledger_open + ends_with - self.allowed)
         solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved,
-                           budget_allowance=allowance, budget_ledger=self.ledger)
+                           budget_allowance=allowance, budget_ledger=self.ledger, budget_correction=correction or 0.0)
 
     def _kinetic(self, v) -> float:
         return 0.5 * float(self.solver.model.mass @ (v * v).sum(1))
