@@ -62,8 +62,10 @@ Its parts, each bounded by what the step knows:
     of this A, leaves rounding. A is the matrix of the step's last solve (its rotations) at the
     step's dt (after halved steps, the dt the contact stage corrected with). The two computed
     works make one sum, the work of s − Hᵀλ (the halves' at their own velocities), which the
-    allowance takes where > 0. Cost: K dv_c, a stiffness product in the energy evaluation the
-    close makes anyway (tissue.solver.step_control), and a read of v.
+    allowance takes where > 0. dv_c is the velocities' change between the free motion's close
+    and the contact close, which only the correction makes in a step (velocities raised there by
+    anything else would pass as its own). Cost: K dv_c, a stiffness product in the energy
+    evaluation the close makes anyway (tissue.solver.step_control), and a read of v.
   - Rounding: E is a fixed-order sum of n terms (each node's kinetic and potential energy, each
     element's elastic energy), each good to a few ε of itself, the sum to (n − 1) ε Σ|terms|
     (Higham); at both ends of the step: 2 n ε (Σ|terms| at the start + at the end), Σ|terms|
@@ -71,16 +73,26 @@ Its parts, each bounded by what the step knows:
 
 Non-accumulation: the ledger D is what accepted steps gained above their budgets' base (E at the
 start plus the work), less what later steps lost, never below 0: D ← max(0, D + E(end) − E(start) −
-work). Its ceiling is the largest allowance of any one step so far, and a step may gain its own
-allowance as far as D stays under it: the budget is E(start) + work + min(a, ceiling − D). So at
-every step's end E ≤ E(first start) + the work done + the ceiling (the reference E − D only falls
-or takes the work; a step counted `budget_unresolved` is over it by what its obstacle took beyond
-the kinetic energy), however many steps gain. Losses pay D back, so a body at rest, its steps
-gaining and losing by turns, keeps its room; a steady gain is stopped once D meets the ceiling.
-(Room of a − D only, the ceiling each step's own allowance: one transient of a large allowance,
-the first steps of a run restarted from a state with cold warm starts, left D above the settled
-steps' allowances, and the liver on the floor was held again until losses paid it back.)
+work). Its ceiling is the sum of the allowances of the last WINDOW steps, this one's included, and
+a step may gain its own allowance as far as D stays under it: the budget is E(start) + work +
+min(a, ceiling − D). So at every step's end E ≤ E(first start) + the work done + D (the reference
+E − D only falls or takes the work; a step counted `budget_unresolved` is over it by what its
+obstacle took beyond the kinetic energy), and D only grows while under the ceiling of the recent
+steps: a steady gain is stopped once D meets it, after WINDOW allowances at most; losses pay D
+back, so a body at rest, its steps gaining and losing by turns, keeps its room; and a large
+allowance leaves the ceiling WINDOW steps later: a D it let in stays until losses pay it back, no
+later gain can use it.
+Why a window's sum. The largest allowance of a step so far (the ceiling before) held the stability
+matrix's clamped beam resting on its floor at 243 of 250 steps: each step gains within its
+allowance (its correction's residual work, above), but the energy creeps up by ~1.5e-5 J over
+~25 steps (~8 allowances) and back without the budget, the solver's error carried until the
+beam slips and gives it back; and one early allowance (an impact's) widened the bound for ever. Windows of 1, 4,
+8, 12, 16 steps held that beam at 243, 236, 133, 4, 0 of its 250 steps (python -m bench.stability
+cell "rest clamped", polar). A window of one (each step's own allowance) held the liver on the floor
+after a transient of cold warm starts, until losses paid D back.
 """
+
+from collections import deque
 
 import numpy as np
 
@@ -89,6 +101,7 @@ from ..errors import TissueError
 
 PRECISION = 1e-3    # of the excess: the most the search back along the step removes beyond it
 SEARCHES = 20       # energy evaluations at most in that search
+WINDOW = 16         # steps whose allowances the ledger's ceiling sums (module docstring)
 EPSILON = {"f64": float(np.finfo(np.float64).eps), "f32": float(np.finfo(np.float32).eps)}
 
 
@@ -108,7 +121,8 @@ class EnergyBudget:
         self.epsilon = EPSILON[backend.current().precision]
         self.allowed = None       # the energy the current step may end with before its allowance (J)
         self.ledger = 0.0         # D (J): accepted gains above the budgets' base not yet lost again
-        self.ceiling = 0.0        # the largest allowance of a step so far (J): D's bound
+        self.ceiling = 0.0        # D's bound at the last close (J): the window's allowances summed
+        self._allowances = deque(maxlen=WINDOW)     # of the last WINDOW steps, this one's last
         self._ledger_open = 0.0   # D at the current step's start
         self._contact = 0.0       # the contact stage's part of the allowance (J)
         self._correction = None   # Hᵀλ (n, 3, N·s) of a contact correction since the last close
@@ -128,6 +142,7 @@ class EnergyBudget:
         self._start_terms = self.control.terms if terms is None else terms
         self._ledger_open, self._contact, self._solves = self.ledger, 0.0, tuple(solves)
         self._correction = self._closed = None
+        self._allowances.append(0.0)
 
     def add_work(self, joules: float) -> None:
         """Work done on the body during the step by what the energy does not hold (moving obstacles)."""
@@ -174,7 +189,11 @@ class EnergyBudget:
     def room(self, allowance: float) -> float:
         """What the step may end with above its budget's base, its allowance `allowance`:
         min(a, ceiling − D), the ceiling counting a (module docstring)."""
-        return max(0.0, min(allowance, max(self.ceiling, allowance) - self._ledger_open))
+        return max(0.0, min(allowance, self._ceiling(allowance) - self._ledger_open))
+
+    def _ceiling(self, allowance: float) -> float:
+        """The window's allowances summed, this step's being `allowance`."""
+        return sum(list(self._allowances)[:-1], allowance)
 
     def close(self, end: tuple[float, float] | None = None) -> None:
         """Project the step's end onto the budget; `end`: its (kinetic + elastic, potential) if
@@ -186,7 +205,9 @@ class EnergyBudget:
         allowance = self.allowance(correction)
         self._correction = None
         budget = self.allowed + self.room(allowance)
-        self.ceiling = max(self.ceiling, allowance)
+        if not self._allowances:        # (closed without an open: a step of its own)
+            self._allowances.append(0.0)
+        self.ceiling, self._allowances[-1] = self._ceiling(allowance), allowance
         energy = inner + potential
         excess = energy - budget
         solver = self.solver
