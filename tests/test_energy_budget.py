@@ -541,7 +541,8 @@ def test_an_injected_gain_on_the_resting_beam_is_projected(backend):
     solver.set_state(x)
     close_budget(control.budget, result, 0, stage.settings.tolerance)
     counters = solver.stats.counters
-    print(f"put in {extra:.2e} J: projected {counters['budget_projections']}, removed {counters['budget_removed']:.2e} J")
+    print(f"put in {extra:.2e} J: projected {counters['budget_projections']}, "
+          f"removed {counters['budget_removed']:.2e} J")
     assert counters["budget_projections"] == 1
     assert counters["budget_removed"] >= extra - control.budget.ceiling
     assert energy(solver) - e0 <= counters["budget_ledger"] + 1e-12 * abs(e0)

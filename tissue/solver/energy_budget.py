@@ -169,7 +169,8 @@ class EnergyBudget:
         v = solver.velocities()
         dv = v - self._closed
         energy = self.control.energy(times=dv)
-        A_dv = solver.mass_factor * solver.model.mass[:, None] * dv + solver.stiffness_factor * self.control.stiffness_product()
+        A_dv = (solver.mass_factor * solver.model.mass[:, None] * dv
+                + solver.stiffness_factor * self.control.stiffness_product())
         return energy, float((v * (A_dv - self._correction)).sum())
 
     def allowance(self, correction: float | None = None) -> float:
@@ -205,8 +206,6 @@ class EnergyBudget:
         allowance = self.allowance(correction)
         self._correction = None
         budget = self.allowed + self.room(allowance)
-        if not self._allowances:        # (closed without an open: a step of its own)
-            self._allowances.append(0.0)
         self.ceiling, self._allowances[-1] = self._ceiling(allowance), allowance
         energy = inner + potential
         excess = energy - budget
@@ -230,7 +229,8 @@ class EnergyBudget:
         self._closed = v
         self.ledger = max(0.0, self._ledger_open + ends_with - self.allowed)
         solver.stats.count(budget_projections=1, budget_removed=removed, budget_unresolved=unresolved,
-                           budget_allowance=allowance, budget_ledger=self.ledger, budget_correction=correction or 0.0)
+                           budget_allowance=allowance, budget_ledger=self.ledger,
+                           budget_correction=correction or 0.0)
 
     def _kinetic(self, v) -> float:
         return 0.5 * float(self.solver.model.mass @ (v * v).sum(1))

@@ -198,7 +198,8 @@ class EnergyControl:
             vec3 = ti.types.vector(3, real)
             self._work = ENERGY_WORK(per_element=ti.ndarray(real, shape[1]), seen_x=ti.ndarray(vec3, (2, shape[0])),
                                      seen_v=ti.ndarray(vec3, (2, shape[0])), totals=ti.ndarray(real, TOTALS),
-                                     direction=ti.ndarray(vec3, shape[0]), stiffness_direction=ti.ndarray(vec3, shape[0]))
+                                     direction=ti.ndarray(vec3, shape[0]),
+                                     stiffness_direction=ti.ndarray(vec3, shape[0]))
             self._shape, self._edits = shape, None
             on_cpu = backend.current().arch == "cpu"
             self._totals_view = host_view(self._work.totals) if on_cpu else None
