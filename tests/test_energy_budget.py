@@ -503,7 +503,7 @@ def rest_steps(solver, control, stage, steps: int) -> dict:
 
 def test_the_resting_clamped_beam_is_not_held(backend):
     """The stability matrix's clamped beam sagging from rest onto its floor, 250 steps: its warped
-    correction's residual works on it (0.8-4.6e-6 J a step, computed in its allowance) and its
+    correction's residual works on it (up to 3.8e-6 J a step, computed in its allowance) and its
     energy creeps up and back by ~1.5e-5 J, ~8 allowances, over tens of steps; at 4d4a934 the
     budget held it at 245 steps, at f3663ba (that work allowed, the ceiling one allowance) 243.
     Now at most 3 are projected, and the energy stays within its bound at every step: E ≤ E₀ + D
