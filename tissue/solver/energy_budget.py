@@ -1,6 +1,7 @@
 """The energy budget (Dinev et al. 2018, "Stabilizing integrators for real-time physics"): no step
 ends with more energy than it started with plus the work done on the body in it, beyond what the
-solvers' own accuracy lets a step gain (its allowance), and those allowances cannot add up.
+solvers' own accuracy lets a step gain (its allowance), and those allowances add up over the
+last WINDOW steps' at most (the ledger, below).
 
 "large" (edge-frame) forces are not the gradient of an energy, so a step can gain energy that no
 step size removes; the energy check (tissue.solver.step_control) halves a step that gains more
@@ -24,8 +25,8 @@ rest (`budget_unresolved`). The solver's stats count `budget_projections` (close
 state), `budget_removed` (J), `budget_allowance` (a, J), `budget_ledger` (D after it, J) and
 `budget_correction` (the correction's residual work below, J).
 Costs: a copy of x and v at each step's start, a read of r and two of v (host views on the CPU),
-and, per projected step, a velocity write (and the search's energy launches when the kinetic
-energy cannot absorb it).
+after a contact correction Hᵀλ and a stiffness product (below), and, per projected step, a
+velocity write (and the search's energy launches when the kinetic energy cannot absorb it).
 
 The allowance. Implicit Euler on its linearised model (A dv = b, tissue.solver.implicit_euler)
 loses energy exactly: with the step's extra impulses s (what A dv − b is beyond the forces),
