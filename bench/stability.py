@@ -250,7 +250,7 @@ def contact_stage(cell: dict, mesh, solver):
 def simulate(cell: dict) -> dict:
     """Run one cell on the current backend; return its outcome."""
     from bench.nonlinear_reference import Body, strain_energy
-    from tissue.contact.layer import contact_allowance, obstacle_work
+    from tissue.contact.layer import close_budget, obstacle_work
     from tissue.errors import TissueError
     from tissue.fem import Material
     from tissue.mesh.tetmesh import signed_volumes
@@ -296,9 +296,7 @@ def simulate(cell: dict) -> dict:
                     step_work = obstacle_work(stage.step(), 0)
                     work += step_work
                     if budget:      # the step's end is after the contact correction
-                        budget.add_work(step_work)
-                        budget.add_allowance(contact_allowance(stage.last, 0, stage.settings.tolerance))
-                        budget.close()
+                        close_budget(budget, stage.last, 0, stage.settings.tolerance)
                 x, v = solver.positions(), solver.velocities()
                 if not (np.isfinite(x).all() and np.isfinite(v).all()):
                     break

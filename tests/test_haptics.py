@@ -306,6 +306,10 @@ def test_grasp_force_is_continuous_across_steps(backend):
     jumps by far more. Measured (400 tetrahedra, db0e900): largest tick-to-tick change 0.016 N, at
     a hand-over 0.011 N; the single-rate force's steps up to 0.40 N. Of the 59 hand-overs, 44 came
     at a step's first tick, 3 two or three ticks in, 12 at the cap (not converged in 8 re-solves).
+    Within a step the re-solves follow the device and the step's correction, as the bound above
+    allows: up to 0.16 N a tick at c5424d9 and 0.063 N without the energy budget (0.014 N at
+    4d4a934, where the budget's projections of the grasped liver happened to smooth it), so the
+    single rate is compared with the hand-overs (0.011-0.012 N in all three).
     35 s here under load (5 jobs on 2 cores), compilation included."""
     from scenes.liver_grasp import LiverGrasp
     from tissue.simulation import Simulation
@@ -338,7 +342,7 @@ def test_grasp_force_is_continuous_across_steps(backend):
     spread = correction[1:] / n
     assert np.all(jumps <= bound + spread + 1e-9)
     single_jumps = np.linalg.norm(np.diff(single[:, 1:4], axis=0), axis=1)
-    assert single_jumps.max() > 10 * jumps.max()                      # measured 0.40 N against 0.016 N
+    assert single_jumps.max() > 10 * jumps[handover].max()            # measured 0.44 N against 0.011 N
 
 
 # ----------------------------------------------------------------------------------------------

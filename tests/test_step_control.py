@@ -170,6 +170,29 @@ def test_energy_kernel_matches_numpy(backend, rotation, execution):
     assert EnergyControl(solver).energy()[0] == pytest.approx(elastic, rel=1e-12)
 
 
+@pytest.mark.parametrize("execution", ["serial", "parallel"])
+@pytest.mark.parametrize("rotation", ["large", "polar", "invertible"])
+def test_energy_launch_takes_the_stiffness_product(backend, rotation, execution):
+    """`energy(times=p)` (the energy budget's correction term) on the turned, perturbed beam after
+    a step: the same energy as without p, and Σ R Kₑ Rᵀ p at the step's rotations as the FEM's own
+    standalone product gives it (its compression limit's tangent too, "invertible"), to 1e-12."""
+    from tissue.solver import ImplicitEuler
+
+    mesh = stability._mesh()
+    rng = np.random.default_rng(7)
+    c, s = np.cos(1.0), np.sin(1.0)
+    x = (mesh.points + 3e-2 * rng.standard_normal(mesh.points.shape)) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    solver = ImplicitEuler(CorotationalFEM(mesh, MATERIAL, rotation=rotation), 0.01, execution=execution)
+    solver.set_state(x, rng.standard_normal(x.shape))
+    solver.step()
+    p = rng.standard_normal(x.shape)
+    control = EnergyControl(solver)
+    plain = control.energy()
+    assert control.energy(times=p) == plain
+    expected = -solver.fem.stiffness_product_numpy(p)
+    np.testing.assert_allclose(control.stiffness_product(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
 @pytest.mark.parametrize("young, dt", [(1e4, 0.5), (2e3, 0.1)])
 def test_soft_beam_at_large_steps_gains_energy_unless_checked(backend, young, dt):
     """ρgL/E = 0.098 and 0.49 (the softest "polar" accepts: tissue.fem.regime): the beam swings

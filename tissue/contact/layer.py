@@ -125,9 +125,7 @@ class ContactLayer:
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)
             if budget is not None and len(c) and i not in touched_softly:
-                budget.add_work(obstacle_work(result, i))
-                budget.add_allowance(contact_allowance(result, i, self.stage.settings.tolerance))
-                budget.close()
+                close_budget(budget, result, i, self.stage.settings.tolerance)
 
     def report(self) -> tuple[dict[str, float], dict[str, float]]:
         """Seconds of the last step by sub-stage, and the counters (contacts, rows, GS iterations
@@ -154,6 +152,16 @@ class ContactLayer:
         return T
 
 
+def close_budget(budget, result, body: int, tolerance: float) -> None:
+    """Close the energy budget (tissue.solver.energy_budget) of soft body `body` after the
+    correction of `result`: with the obstacles' work, the contact reactions' allowance and the
+    correction's impulses."""
+    budget.add_work(obstacle_work(result, body))
+    budget.add_allowance(contact_allowance(result, body, tolerance))
+    budget.add_correction(correction_impulses(result, body, budget.solver.model.n_nodes))
+    budget.close()
+
+
 def obstacle_work(result, body: int) -> float:
     """The work (J) the obstacles did on `body` in the step of `result`: each of its contacts'
     force along the motion of the obstacle's touched point over the step (static obstacles do
@@ -174,6 +182,19 @@ def contact_allowance(result, body: int, tolerance: float) -> float:
     mine = result.contacts.body[:len(impulses)] == body
     violation = max(tolerance, result.info.residual if result.info is not None else 0.0)
     return 2.0 * violation * float(np.linalg.norm(impulses[mine], axis=1).sum()) / result.dt
+
+
+def correction_impulses(result, body: int, n_nodes: int) -> np.ndarray:
+    """Hᵀλ (n_nodes, 3, N·s): the impulses the reactions of `result` (contacts and attachments)
+    apply at the nodes of `body`, which its correction moved it by."""
+    out = np.zeros((n_nodes, 3))
+    rows = result.rows
+    if rows is None:
+        return out
+    mine = np.flatnonzero(rows.body == body)
+    blocks = result.impulses.reshape(-1, 3)[rows.block[mine]]
+    np.add.at(out, rows.node[mine], np.einsum("eij,ei->ej", rows.value[mine], blocks))
+    return out
 
 
 def obstacle_surface(obstacle: RigidObstacle, bounds) -> tuple[np.ndarray, np.ndarray]:

@@ -34,7 +34,9 @@ import taichi as ti
 
 from .. import backend, compilation
 from ..errors import TissueError
+from ..fem import corotational
 from ..fem.energy import element_energy, element_energy_at_rotations
+from ..fem.model import real_numpy
 from ..launch import host_view, replayed
 from .energy_budget import EnergyBudget, solve_residual
 from .implicit_euler import GX, GY, GZ, STEP, _begin, _end, _multigrid, _solve_serial
@@ -42,10 +44,14 @@ from .implicit_euler import GX, GY, GZ, STEP, _begin, _end, _multigrid, _solve_s
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
 MAX_HALVINGS = 6        # dt / 64 at the finest
 
-# The evaluations' own arrays: per-element energies, the last two states evaluated (slot, node), and
-# their totals (slots below).
+# The evaluations' own arrays: per-element energies, the last two states evaluated (slot, node),
+# their totals (slots below), and a nodal vector and its stiffness product (`energy(times=...)`:
+# the energy budget's correction term, in the launch the budget's close makes anyway, so that no
+# scene compiles a kernel more). Named apart from the step's arrays (its "product"): Taichi 1.7
+# mixes up like-named members of two argpacks in one kernel.
 ENERGY_WORK = ti.types.argpack(per_element=ti.types.ndarray(), seen_x=ti.types.ndarray(),
-                               seen_v=ti.types.ndarray(), totals=ti.types.ndarray())
+                               seen_v=ti.types.ndarray(), totals=ti.types.ndarray(), direction=ti.types.ndarray(),
+                               stiffness_direction=ti.types.ndarray())
 # The elastic energy of the last evaluation and whether it was fresh; then the (kinetic + elastic,
 # potential, fresh, Σ|terms|) of an evaluation at a step's start and at its end.
 ELASTIC, FRESH, AT_START, AT_END = 0, 1, 2, 6
@@ -103,12 +109,13 @@ def _evaluate_serial(k: ti.template(), w: ti.template(), rotation: ti.template()
 
 
 @ti.kernel
-def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.template(), previous: ti.i32,
-            edited: ti.i32, tol: ti.f64):
+def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), accumulation: ti.template(), parallel: ti.template(),
+            previous: ti.i32, edited: ti.i32, product: ti.i32, tol: ti.f64):
     """(kinetic + elastic, the potential of gravity and the applied forces, 1 if the elastic
     energy was evaluated afresh) at the solver's state, into w.totals[AT_END:]; the state is kept
     in slot 1 − previous and compared with slot `previous` (the elastic energy reused where equal
-    and not `edited`)."""
+    and not `edited`). Where `product`, also w.stiffness_direction = Σ R Kₑ Rᵀ w.direction, the
+    stiffness of the solver's last linearisation (its rotations) times w.direction."""
     if ti.static(parallel):
         ti.loop_config(serialize=True)
         for _ in range(1):
@@ -116,6 +123,11 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
         for e in range(k.counts[1]):
             if w.totals[FRESH] != 0:
                 w.per_element[e] = element_energy(k, e, k.x, rotation, tol)
+            if product != 0:
+                corotational.scatter_element(k, k, "stiffness", e, w.direction, accumulation, rotation)
+        for v in range(k.counts[0]):
+            if product != 0:
+                w.stiffness_direction[v] = -corotational.gathered(k, k, v, accumulation)
         ti.loop_config(serialize=True)
         for _ in range(1):
             if w.totals[FRESH] != 0:
@@ -128,6 +140,10 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), parallel: ti.templ
         ti.loop_config(serialize=True)
         for _ in range(1):
             _evaluate_serial(k, w, rotation, False, previous, edited, AT_END, tol)
+            if product != 0:
+                corotational.scatter(k, k, "stiffness", w.direction, accumulation, rotation)
+                for v in range(k.counts[0]):
+                    w.stiffness_direction[v] = -corotational.gathered(k, k, v, accumulation)
 
 
 @compilation.without_ir_passes(_multigrid)
@@ -163,7 +179,7 @@ class EnergyControl:
         # their own, as elsewhere; the benchmarks' and tests' comparison).
         self.fused = fused
         self.evaluations = 0        # elastic energies evaluated afresh (the others reused)
-        self._work = self._totals_view = None
+        self._work = self._totals_view = self._product_views = None
         self._shape = None          # the model's capacities the work is sized for
         self._edits = None          # the model's edit count at the last evaluation
         self._slot = 0              # where the last evaluation kept its state
@@ -181,9 +197,14 @@ class EnergyControl:
             real = backend.current().real
             vec3 = ti.types.vector(3, real)
             self._work = ENERGY_WORK(per_element=ti.ndarray(real, shape[1]), seen_x=ti.ndarray(vec3, (2, shape[0])),
-                                     seen_v=ti.ndarray(vec3, (2, shape[0])), totals=ti.ndarray(real, TOTALS))
+                                     seen_v=ti.ndarray(vec3, (2, shape[0])), totals=ti.ndarray(real, TOTALS),
+                                     direction=ti.ndarray(vec3, shape[0]),
+                                     stiffness_direction=ti.ndarray(vec3, shape[0]))
             self._shape, self._edits = shape, None
-            self._totals_view = host_view(self._work.totals) if backend.current().arch == "cpu" else None
+            on_cpu = backend.current().arch == "cpu"
+            self._totals_view = host_view(self._work.totals) if on_cpu else None
+            self._product_views = ((host_view(self._work.direction), host_view(self._work.stiffness_direction))
+                                   if on_cpu else None)
         return self._work
 
     def _totals(self) -> np.ndarray:
@@ -199,18 +220,37 @@ class EnergyControl:
         self._edits = self.solver.model.edits
         return edited
 
-    def energy(self) -> tuple[float, float]:
+    def energy(self, times: np.ndarray | None = None) -> tuple[float, float]:
         """(kinetic + elastic, the potential of gravity and the applied forces) at the solver's
-        state."""
+        state; with `times` (n, 3), also the stiffness of the solver's last step (Σ R Kₑ Rᵀ at
+        its rotations) times it, in the same launch, then read by `stiffness_product()`."""
         solver = self.solver
         k = solver._step_pack()
         w = self._work_pack()
-        ENERGY(k, w, solver.fem.rotation, solver.execution != "serial", self._slot, self._edited(),
-               solver.fem.rotation_tolerance)
+        if times is not None:
+            self._write_direction(times)
+        ENERGY(k, w, solver.fem.rotation, solver.fem.accumulation, solver.execution != "serial", self._slot,
+               self._edited(), int(times is not None), solver.fem.rotation_tolerance)
         inner, potential, fresh, self.terms = (float(t) for t in self._totals()[AT_END:AT_END + 4])
         self._slot = 1 - self._slot
         self.evaluations += int(fresh)
         return inner, potential
+
+    def _write_direction(self, values: np.ndarray) -> None:
+        n = self.solver.model.n_nodes
+        if self._product_views is None:
+            padded = np.zeros((self._shape[0], 3), dtype=real_numpy())
+            padded[:n] = values
+            self._work.direction.from_numpy(padded)
+        else:
+            self._product_views[0][:n] = values
+
+    def stiffness_product(self) -> np.ndarray:
+        """(n, 3): the product the last `energy(times=...)` took."""
+        n = self.solver.model.n_nodes
+        if self._product_views is None:
+            return self._work.stiffness_direction.to_numpy()[:n].astype(np.float64)
+        return self._product_views[1][:n].astype(np.float64)
 
     def _previous_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The state the evaluation before the last one saw (a step's start, after its end)."""
