@@ -120,11 +120,15 @@ class ContactLayer:
     def step(self, sim) -> None:
         result = self.stage.step(time=sim.time + sim.dt)
         c = result.contacts
+        # Soft–soft contacts and jaws (bodies of one node, moved by the correction too) trade
+        # energy that the obstacles' work cannot count: the bodies they touch keep the budget of
+        # their free motion.
         soft = c.soft.nonzero()[0]
-        touched_softly = set(c.body[soft].tolist()) | set(c.other[soft].tolist())   # (one pass, not one per body)
+        jawed = (~c.soft & (c.other >= self.stage.first_jaw)).nonzero()[0]
+        trading = set(c.body[soft].tolist()) | set(c.other[soft].tolist()) | set(c.body[jawed].tolist())
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)
-            if budget is not None and len(c) and i not in touched_softly:
+            if budget is not None and len(c) and i not in trading:
                 close_budget(budget, result, i, self.stage.settings.tolerance)
 
     def report(self) -> tuple[dict[str, float], dict[str, float]]:
@@ -166,8 +170,8 @@ def obstacle_work(result, body: int) -> float:
     """The work (J) the obstacles did on `body` in the step of `result`: each of its contacts'
     force along the motion of the obstacle's touched point over the step (static obstacles do
     none; sliding friction's work relative to the obstacle is the body's loss, not the
-    obstacle's). Soft–soft contacts trade energy between bodies, not counted: a body that had any
-    keeps the budget of its free motion (tissue.solver.energy_budget)."""
+    obstacle's). Soft–soft and jaw contacts trade energy between bodies, not counted: a body that
+    had any keeps the budget of its free motion (tissue.solver.energy_budget)."""
     forces = result.contact_forces
     mine = result.contacts.body[:len(forces)] == body
     return float(np.einsum("kj,kj->", forces[mine], result.contacts.other_motion[:len(forces)][mine]))
