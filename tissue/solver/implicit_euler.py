@@ -37,7 +37,7 @@ from ..fem.regime import check_regime
 from ..launch import host_view, kept_pack, replayed
 from ..stats import Stats
 from . import multigrid
-from .multigrid import MULTIGRID_MEMBERS, Multigrid
+from .multigrid import MULTIGRID_MEMBERS, BlockJacobi, Multigrid
 
 PRECONDITIONERS = ("none", "jacobi", "multigrid")
 EXECUTIONS = ("auto", "serial", "parallel")
@@ -93,8 +93,8 @@ class Scheme:
     accumulation: str
     operator: str            # "assembled" or "matrix_free"
     layout: str              # the assembled blocks: "symmetric" (serial) or "rows" (parallel)
-    preconditioner: str
-    smoothing_degree: int    # of the multigrid's Chebyshev smoother
+    preconditioner: str      # "multigrid" for block-Jacobi too, where it runs as its degenerate case
+    smoothing_degree: int    # of the multigrid's Chebyshev smoother, where compiled in (parallel; 0 else)
     unroll: int              # CG iterations per launch on the parallel path
 
     @property
@@ -192,8 +192,14 @@ class ImplicitEuler:
         self.matrix = None
         if operator == "assembled":
             self.matrix = (SymmetricBlocks if layout == "symmetric" else BlockRows)(self.model)
-        self.scheme = Scheme(fem.rotation, fem.accumulation, operator, layout, cg.preconditioner,
-                             cg.smoothing_degree, unroll)
+        # Block-Jacobi in one thread with the assembled matrix runs as the V-cycle's degenerate case
+        # (multigrid.BlockJacobi): the multigrid scenes' step kernel, no instance of its own. The
+        # serial V-cycle reads its smoother's degree at run time.
+        coupled = cg.preconditioner == "multigrid" or (
+            cg.preconditioner == "jacobi" and layout == "symmetric" and operator == "assembled")
+        self.scheme = Scheme(fem.rotation, fem.accumulation, operator, layout,
+                             "multigrid" if coupled else cg.preconditioner,
+                             cg.smoothing_degree if layout == "rows" else 0, unroll)
         self.stats = Stats()
         self._warned_inversion = False
         self._version = None
@@ -208,8 +214,8 @@ class ImplicitEuler:
         self._resize()
         if fixed is not None:
             self.model.set_held(fixed)
-        if cg.preconditioner == "multigrid":
-            self.multigrid = Multigrid(self)
+        if coupled:
+            self.multigrid = (Multigrid if cg.preconditioner == "multigrid" else BlockJacobi)(self)
         self.model.subscribe(self)
 
     @classmethod
