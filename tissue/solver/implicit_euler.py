@@ -805,10 +805,11 @@ def _descend(k: ti.template(), o: ti.template()):
             for v in range(begin, end):
                 k.dv[v] = k.dv[v] + alpha * k.p[v]  # rows are owned: no atomics
                 r = k.r[v] - alpha * k.q[v]
-                z = _preconditioned(k, o, v, r)
                 k.r[v] = r
-                k.z[v] = z
-                rz += r.dot(z)
+                if ti.static(o.preconditioner != "multigrid"):   # (multigrid: _precondition_coupled)
+                    z = _preconditioned(k, o, v, r)
+                    k.z[v] = z
+                    rz += r.dot(z)
                 rr += r.dot(r)
         k.partial[0, b] = rz
         k.partial[1, b] = rr
