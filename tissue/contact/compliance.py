@@ -395,7 +395,8 @@ class WarpedCompliance:
             self.C0, self.inverse_mass = self.source.C, 0.0
         else:
             C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
-                                 rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
+                                 rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness,
+                                 matrix=solver.rest_matrix())
             # A free body's rigid translation is not warped: A₀⁻¹ = Q + S with S = T Tᵀ / (c m) (T
             # the uniform translations, c = 1 + h α_M, m the mass; K T = 0, so A₀ T = c M T), and Q
             # moves no momentum (Tᵀ M Q = 0). Rotating S too by nodal rotations that differ from

@@ -38,6 +38,7 @@ from ..launch import host_view, kept_pack, replayed
 from ..stats import Stats
 from . import multigrid
 from .multigrid import MULTIGRID_MEMBERS, BlockJacobi, Multigrid
+from .reference import rest_matrix
 
 PRECONDITIONERS = ("none", "jacobi", "multigrid")
 EXECUTIONS = ("auto", "serial", "parallel")
@@ -210,6 +211,7 @@ class ImplicitEuler:
         self.multigrid = None
         self.parameters = parameters
         self._checked_material = None     # the material check_regime last passed
+        self._rest_matrix = (None, None)  # (what it was made for, A₀): see rest_matrix
         self.check_regime()
         self._resize()
         if fixed is not None:
@@ -419,6 +421,18 @@ class ImplicitEuler:
         rows[:len(ids), :3] = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         rows[:len(ids), 3:] = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
         WRITE_NODES(self.x, self.v, index, rows)
+
+    def rest_matrix(self):
+        """A₀, the step matrix of the rest shape at this dt and damping (scipy CSR, every dof),
+        made again only after the model or these changed: the multigrid's set-up and the contact
+        compliance's A₀⁻¹ both start from it."""
+        model = self.model
+        key = (model.edits, model.material, self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
+        made_for, matrix = self._rest_matrix
+        if made_for != key:
+            matrix = rest_matrix(model.mesh(), model.material, *key[2:])
+            self._rest_matrix = (key, matrix)
+        return matrix
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 

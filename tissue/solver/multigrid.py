@@ -35,7 +35,6 @@ from ..fem.model import real_numpy
 from ..mesh import box
 from ..mesh.embedding import EmbeddedSurface
 from . import implicit_euler as ie
-from .reference import rest_matrix
 
 SMOOTHING_RANGE = 30.0   # Chebyshev targets [λ/30, λ]: the part of the spectrum the coarse space misses
 LAMBDA_MARGIN = 1.1      # above the estimated λ_max of D₀⁻¹A₀, for rotations and the estimate's error
@@ -124,7 +123,7 @@ class Multigrid:
         coarse = np.searchsorted(used, embedding.nodes)          # renumbered; 0 where the weight is 0
         coarse[weights == 0] = 0
         self.coarse_points = grid.points[used]
-        A0 = rest_matrix(mesh, model.material, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
+        A0 = solver.rest_matrix()
         linked = np.repeat(model.mass > 0, 3)            # detached nodes have empty rows
         theta, steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(A0[linked][:, linked]),
                                               cg.smoothing_degree)
