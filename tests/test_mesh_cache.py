@@ -121,3 +121,34 @@ def test_an_organ_with_other_tets_starts_from_the_cached_surface(cache_dir, monk
         assert same(from_cache, organ_mesh("stomach", target_tets=320))
     finally:
         organs._cached.cache_clear()
+
+
+def test_a_rest_compliance_is_inverted_once_per_rest_matrix_and_held_nodes(cache_dir, monkeypatch, backend):
+    """The warped compliance's dense A₀⁻¹ is cached under a hash of A₀ and the held nodes: a second
+    body with the same mesh, material, dt, damping and holds reads it back (no inversion), the
+    same bits as the inversion gave; other held nodes make another A₀⁻¹."""
+    from tissue.contact import compliance
+    from tissue.fem import CorotationalFEM, Material
+    from tissue.solver import ImplicitEuler
+
+    mesh = box(size=(0.1, 0.04, 0.04), cells=(4, 2, 2))
+
+    def warped(held):
+        solver = ImplicitEuler(CorotationalFEM(mesh, Material(5e4, 0.3, 1000.0)), 0.02, rayleigh_mass=0.1,
+                               rayleigh_stiffness=0.01, fixed=held)
+        return compliance.WarpedCompliance(solver)
+
+    clamped = np.flatnonzero(mesh.points[:, 0] == 0)
+    first = warped(clamped).C0_host
+    assert len(list(cache_dir.glob("rest_compliance-*.npz"))) == 1
+    inverse = compliance.rest_compliance
+    counting, inversions = counted(lambda: None)
+
+    def counted_inverse(*args, **kwargs):
+        counting()
+        return inverse(*args, **kwargs)
+
+    monkeypatch.setattr(compliance, "rest_compliance", counted_inverse)
+    assert np.array_equal(warped(clamped).C0_host, first) and not inversions
+    warped(clamped[:3])
+    assert len(inversions) == 1 and len(list(cache_dir.glob("rest_compliance-*.npz"))) == 2

@@ -66,6 +66,8 @@ tissue[cholmod]) scipy's SuperLU with the MMD order of Aᵀ + A stands in (`fact
 warping error and the paper's "direct inversion" baseline.
 """
 
+import hashlib
+
 import numpy as np
 import scipy.linalg.blas
 import scipy.sparse as sp
@@ -85,6 +87,7 @@ SIMPLICIAL_DOFS = 2500      # free dofs up to which CHOLMOD factorises simplicia
 from ..fem.corotational import element_rotation, nodal_rotation
 from ..fem.model import MODEL, real_numpy
 from ..launch import host_view, kept_pack, replayed
+from ..mesh import cache
 from ..solver.reference import free_dofs, linearise, rest_compliance
 from .constraints import ConstraintRows, JaggedDiagonal
 from .storage import Storage
@@ -351,6 +354,23 @@ def _displace(x: ti.types.ndarray(), v: ti.types.ndarray(), dx: ti.types.ndarray
         v[k] = v[k] + d / h
 
 
+def _rest_compliance(solver) -> np.ndarray:
+    """The body's dense A₀⁻¹ (reference.rest_compliance), kept in the on-disk cache
+    (tissue.mesh.cache) under a hash of A₀ and the held nodes, what it is a function of: scenes
+    that share a body at the same dt and damping (liver_press and liver_grasp) invert it once per
+    machine. The 1,300-tetrahedron liver's takes ~0.1 s of CPU, reading it back a few ms."""
+    A, fixed = solver.rest_matrix(), np.asarray(solver.fixed_nodes, dtype=np.int64)
+    digest = hashlib.sha256(str((A.shape, A.data.dtype, A.indices.dtype)).encode())
+    for array in (A.data, A.indices, A.indptr, fixed):
+        digest.update(np.ascontiguousarray(array).tobytes())
+
+    def invert():
+        fem = solver.fem
+        return {"C": rest_compliance(fem.mesh, fem.material, solver.dt, fixed=fixed, matrix=A)}
+
+    return cache.cached_arrays(invert, ("C",), "rest_compliance", matrix=digest.hexdigest())["C"]
+
+
 class WarpedCompliance:
     """One soft body's rest compliance A₀⁻¹ (dense, on the device) and nodal rotations.
 
@@ -396,8 +416,7 @@ class WarpedCompliance:
             self.source.update()
             self.C0, self.inverse_mass = self.source.C, 0.0
         else:
-            C0 = rest_compliance(fem.mesh, fem.material, solver.dt, fixed=solver.fixed_nodes,
-                                 rayleigh_mass=solver.rayleigh_mass, rayleigh_stiffness=solver.rayleigh_stiffness)
+            C0 = _rest_compliance(solver)
             # A free body's rigid translation is not warped: A₀⁻¹ = Q + S with S = T Tᵀ / (c m) (T
             # the uniform translations, c = 1 + h α_M, m the mass; K T = 0, so A₀ T = c M T), and Q
             # moves no momentum (Tᵀ M Q = 0). Rotating S too by nodal rotations that differ from

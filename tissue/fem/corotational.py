@@ -595,6 +595,7 @@ class CorotationalFEM:
                                 accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
         self.work = FEM_WORK(**self.work_arrays)
         self._io = [ti.ndarray(vec3, n) for _ in range(2)]
+        self._stresses = ti.ndarray(mat3, m)     # element_stress_numpy's (kept: an allocation costs ~1 ms)
         self._version = model.version
         return True
 
@@ -675,6 +676,7 @@ class CorotationalFEM:
         """Co-rotational stress R σ Rᵀ of each element (m, 3, 3) at the given positions: an (n, 3)
         array, or a nodal ndarray such as a solver's `x` (read in place)."""
         x = self._vectors(positions) if isinstance(positions, np.ndarray) else positions
-        out = ti.ndarray(ti.types.matrix(3, 3, backend.current().real), self.model.element_capacity)
+        self.resize()
+        out = self._stresses
         _stress_kernel(self.model.pack, x, out, self.rotation, self.rotation_tolerance)
         return out.to_numpy()[:self.n_elements].astype(np.float64)

@@ -37,7 +37,8 @@ from ..fem.regime import check_regime
 from ..launch import host_view, kept_pack, replayed
 from ..stats import Stats
 from . import multigrid
-from .multigrid import MULTIGRID_MEMBERS, Multigrid
+from .multigrid import MULTIGRID_MEMBERS, BlockJacobi, Multigrid
+from .reference import rest_matrix
 
 PRECONDITIONERS = ("none", "jacobi", "multigrid")
 EXECUTIONS = ("auto", "serial", "parallel")
@@ -93,8 +94,8 @@ class Scheme:
     accumulation: str
     operator: str            # "assembled" or "matrix_free"
     layout: str              # the assembled blocks: "symmetric" (serial) or "rows" (parallel)
-    preconditioner: str
-    smoothing_degree: int    # of the multigrid's Chebyshev smoother
+    preconditioner: str      # "multigrid" for block-Jacobi too, where it runs as its degenerate case
+    smoothing_degree: int    # of the multigrid's Chebyshev smoother, where compiled in (parallel; 0 else)
     unroll: int              # CG iterations per launch on the parallel path
 
     @property
@@ -192,8 +193,14 @@ class ImplicitEuler:
         self.matrix = None
         if operator == "assembled":
             self.matrix = (SymmetricBlocks if layout == "symmetric" else BlockRows)(self.model)
-        self.scheme = Scheme(fem.rotation, fem.accumulation, operator, layout, cg.preconditioner,
-                             cg.smoothing_degree, unroll)
+        # Block-Jacobi in one thread with the assembled matrix runs as the V-cycle's degenerate case
+        # (multigrid.BlockJacobi): the multigrid scenes' step kernel, no instance of its own. The
+        # serial V-cycle reads its smoother's degree at run time.
+        coupled = cg.preconditioner == "multigrid" or (
+            cg.preconditioner == "jacobi" and layout == "symmetric" and operator == "assembled")
+        self.scheme = Scheme(fem.rotation, fem.accumulation, operator, layout,
+                             "multigrid" if coupled else cg.preconditioner,
+                             cg.smoothing_degree if layout == "rows" else 0, unroll)
         self.stats = Stats()
         self._warned_inversion = False
         self._version = None
@@ -204,12 +211,13 @@ class ImplicitEuler:
         self.multigrid = None
         self.parameters = parameters
         self._checked_material = None     # the material check_regime last passed
+        self._rest_matrix = (None, None)  # (what it was made for, A₀): see rest_matrix
         self.check_regime()
         self._resize()
         if fixed is not None:
             self.model.set_held(fixed)
-        if cg.preconditioner == "multigrid":
-            self.multigrid = Multigrid(self)
+        if coupled:
+            self.multigrid = (Multigrid if cg.preconditioner == "multigrid" else BlockJacobi)(self)
         self.model.subscribe(self)
 
     @classmethod
@@ -413,6 +421,18 @@ class ImplicitEuler:
         rows[:len(ids), :3] = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         rows[:len(ids), 3:] = np.asarray(velocities, dtype=np.float64).reshape(-1, 3)
         WRITE_NODES(self.x, self.v, index, rows)
+
+    def rest_matrix(self):
+        """A₀, the step matrix of the rest shape at this dt and damping (scipy CSR, every dof),
+        made again only after the model or these changed: the multigrid's set-up and the contact
+        compliance's A₀⁻¹ both start from it."""
+        model = self.model
+        key = (model.edits, model.material, self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
+        made_for, matrix = self._rest_matrix
+        if made_for != key:
+            matrix = rest_matrix(model.mesh(), model.material, *key[2:])
+            self._rest_matrix = (key, matrix)
+        return matrix
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 
@@ -799,10 +819,11 @@ def _descend(k: ti.template(), o: ti.template()):
             for v in range(begin, end):
                 k.dv[v] = k.dv[v] + alpha * k.p[v]  # rows are owned: no atomics
                 r = k.r[v] - alpha * k.q[v]
-                z = _preconditioned(k, o, v, r)
                 k.r[v] = r
-                k.z[v] = z
-                rz += r.dot(z)
+                if ti.static(o.preconditioner != "multigrid"):   # (multigrid: _precondition_coupled)
+                    z = _preconditioned(k, o, v, r)
+                    k.z[v] = z
+                    rz += r.dot(z)
                 rr += r.dot(r)
         k.partial[0, b] = rz
         k.partial[1, b] = rr

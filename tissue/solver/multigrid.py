@@ -35,7 +35,6 @@ from ..fem.model import real_numpy
 from ..mesh import box
 from ..mesh.embedding import EmbeddedSurface
 from . import implicit_euler as ie
-from .reference import rest_matrix
 
 # Chebyshev targets [λ/15, λ]: the part of the spectrum the coarse space misses. Against [λ/30, λ],
 # 2-13 % fewer CG iterations per scene at the same cost each (docs/performance.md, branch free2).
@@ -126,7 +125,7 @@ class Multigrid:
         coarse = np.searchsorted(used, embedding.nodes)          # renumbered; 0 where the weight is 0
         coarse[weights == 0] = 0
         self.coarse_points = grid.points[used]
-        A0 = rest_matrix(mesh, model.material, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
+        A0 = solver.rest_matrix()
         linked = np.repeat(model.mass > 0, 3)            # detached nodes have empty rows
         theta, steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(A0[linked][:, linked]),
                                               cg.smoothing_degree)
@@ -144,20 +143,13 @@ class Multigrid:
         offsets = np.zeros(nc + 1, dtype=np.int32)
         np.cumsum(np.bincount(coarse.ravel()[entries], minlength=nc), out=offsets[1:])
 
-        real, np_real = backend.current().real, real_numpy()
-        vec3, mat3, vec4 = ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.vector(4, real)
+        np_real = real_numpy()
         capacity = model.node_capacity      # nodal arrays sized as the solver's state
         padded_nodes = np.zeros((capacity, 4), dtype=np.int32)
         padded_nodes[:n] = coarse
         padded_weights = np.zeros((capacity, 4), dtype=np_real)
         padded_weights[:n] = weights
-        arrays = dict(coarse_count=ti.ndarray(ti.i32, 1), nodes=ti.ndarray(ti.types.vector(4, ti.i32), capacity),
-                      weights=ti.ndarray(vec4, capacity), fine_offsets=ti.ndarray(ti.i32, nc + 1),
-                      fine_entries=ti.ndarray(ti.i32, max(1, len(entries))),
-                      coarse_inverse=ti.ndarray(real, (3 * nc, 3 * nc)), nodal_R=ti.ndarray(mat3, capacity),
-                      res=ti.ndarray(vec3, capacity), d=ti.ndarray(vec3, capacity),
-                      rc=ti.ndarray(real, 3 * nc), ec=ti.ndarray(real, 3 * nc),
-                      coefficients=ti.ndarray(real, 1 + 2 * len(steps)))
+        arrays = _arrays(capacity, capacity, nc, len(entries), 1 + 2 * len(steps))
         arrays["coarse_count"].from_numpy(np.array([nc], dtype=np.int32))
         arrays["nodes"].from_numpy(padded_nodes)
         arrays["weights"].from_numpy(padded_weights)
@@ -169,7 +161,7 @@ class Multigrid:
         arrays["coefficients"].from_numpy(np.array([theta] + [c for step in steps for c in step], dtype=np_real))
         self.A0, self.theta, self.steps = A0, theta, steps
         self.arrays = arrays
-        self._io = [ti.ndarray(vec3, capacity) for _ in range(2)]
+        self._io = [ti.ndarray(ti.types.vector(3, backend.current().real), capacity) for _ in range(2)]
 
     # ---- standalone launch (tests) -----------------------------------------------------------
 
@@ -184,13 +176,55 @@ class Multigrid:
         return dst.to_numpy()[:n].astype(np.float64)
 
 
+class BlockJacobi:
+    """Block-Jacobi, z = D⁻¹ r, as the V-cycle's degenerate case for the serial step: no coarse
+    space (the cycle stops after its first smoothing) and a smoother of degree 1 with θ = 1, so z
+    is D⁻¹ r to the bit. The serial step's kernel instance is then the one the multigrid schemes
+    compile (a kernel's compilation is most of a warm start): its arrays have the multigrid's
+    types, a single entry where the cycle does not reach."""
+
+    def __init__(self, solver):
+        self.solver = solver
+        self._capacity = None
+        self.rebuild()
+
+    def rebuild(self) -> None:
+        capacity = self.solver.model.node_capacity      # the smoother's scratch, sized as the state
+        if capacity != self._capacity:
+            self.arrays = _arrays(1, capacity, 0, 0, 1)
+            self.arrays["coarse_count"].from_numpy(np.zeros(1, dtype=np.int32))
+            self.arrays["coefficients"].from_numpy(np.ones(1, dtype=real_numpy()))
+            self._capacity = capacity
+
+
+def _arrays(fine: int, scratch: int, coarse: int, entries: int, coefficients: int) -> dict:
+    """The multigrid's members of a step's argpack, unfilled: `fine` rows of P and of the nodal
+    rotations, `scratch` of the smoother's, `coarse` coarse nodes, `entries` of the restriction,
+    `coefficients` (at least one entry each). Their types key the kernel's instance."""
+    real = backend.current().real
+    vec3, mat3, vec4 = ti.types.vector(3, real), ti.types.matrix(3, 3, real), ti.types.vector(4, real)
+    dofs = max(1, 3 * coarse)
+    return dict(coarse_count=ti.ndarray(ti.i32, 1), nodes=ti.ndarray(ti.types.vector(4, ti.i32), fine),
+                weights=ti.ndarray(vec4, fine), fine_offsets=ti.ndarray(ti.i32, coarse + 1),
+                fine_entries=ti.ndarray(ti.i32, max(1, entries)), coarse_inverse=ti.ndarray(real, (dofs, dofs)),
+                nodal_R=ti.ndarray(mat3, fine), res=ti.ndarray(vec3, scratch), d=ti.ndarray(vec3, scratch),
+                rc=ti.ndarray(real, dofs), ec=ti.ndarray(real, dofs), coefficients=ti.ndarray(real, coefficients))
+
+
 # ---- Taichi functions, called at the top level of the solver's kernels over its argpack `k` -------
 
 
 @ti.func
 def update_rotations(k: ti.template(), tol):
+    """The nodal rotations the coarse correction turns by (none without a coarse space)."""
     for v in range(k.counts[0]):
-        k.nodal_R[v] = nodal_rotation(k.R, k.valence, k.incidence, v, tol)
+        if _coarse(k):
+            k.nodal_R[v] = nodal_rotation(k.R, k.valence, k.incidence, v, tol)
+
+
+@ti.func
+def _coarse(k: ti.template()):
+    return k.coarse_count[0] > 0
 
 
 @ti.func
@@ -214,12 +248,14 @@ def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template
         if _running(k):
             if from_zero:
                 k.res[v] = r[v]
-                z[v] = ti.Vector([0.0, 0.0, 0.0])
             d = (k.block_inverse[v] @ k.res[v]) / k.coefficients[0]
             k.d[v] = d
-            z[v] = z[v] + d
-    if ti.static(o.serial):   # one thread: a runtime loop, the step inlined once
-        for step in range(o.smoothing_degree - 1):
+            if from_zero:
+                z[v] = d
+            else:
+                z[v] = z[v] + d
+    if ti.static(o.serial):   # one thread: a runtime loop, the step inlined once, its degree read
+        for step in range((k.coefficients.shape[0] - 1) // 2):
             _chebyshev_step(k, o, z, step)
     else:
         for step in ti.static(range(o.smoothing_degree - 1)):
@@ -275,8 +311,9 @@ def apply(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()
         # One thread: the stages as a runtime loop, so that each product with A is inlined once
         # (a kernel's size is what its compilation costs in every process).
         # Skipped whole once converged: its loops would skip their nodes, but not the products.
+        # Without a coarse space (BlockJacobi) the cycle is its first smoothing.
         for stage in range(4):
-            if not _running(k):
+            if not _running(k) or (stage == 1 and not _coarse(k)):
                 break
             if stage == 0 or stage == 3:
                 _smooth(k, o, r, z, stage == 0)

@@ -79,6 +79,14 @@ def _block_diagonal_rotation(R: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(12 * m, 12 * m))
 
 
+def _block_diagonal(blocks: np.ndarray) -> sp.csr_matrix:
+    """The (12m × 12m) block diagonal of m 12×12 blocks, zeros kept, as scipy's block_diag makes it
+    (the same arrays, without its per-block conversions)."""
+    m = len(blocks)
+    indices = np.tile(np.arange(12 * m).reshape(m, 1, 12), (1, 12, 1)).reshape(-1)
+    return sp.csr_matrix((blocks.reshape(-1), indices, np.arange(0, 144 * m + 1, 12)), shape=(12 * m, 12 * m))
+
+
 def _scatter_matrix(mesh: TetMesh) -> sp.csr_matrix:
     """G: (3n × 12m), element-local dofs -> global dofs."""
     m = mesh.n_tets
@@ -100,7 +108,7 @@ class LinearisedStep:
 def linearise(mesh: TetMesh, material: Material, x: np.ndarray, v: np.ndarray, dt: float,
               gravity=(0.0, 0.0, -9.81), rayleigh_mass=0.0, rayleigh_stiffness=0.0,
               rotation: str = "large", external=None) -> LinearisedStep:
-    Ke = sp.block_diag(list(element_stiffness(mesh, material)), format="csr")
+    Ke = _block_diagonal(element_stiffness(mesh, material))
     R = _block_diagonal_rotation(element_rotations(mesh, x, rotation))
     G = _scatter_matrix(mesh)
     K = (G @ R @ Ke @ R.T @ G.T).tocsr()
@@ -147,13 +155,14 @@ def rest_matrix(mesh: TetMesh, material: Material, dt: float, rayleigh_mass=0.0,
 
 
 def rest_compliance(mesh: TetMesh, material: Material, dt: float, fixed=(),
-                    rayleigh_mass=0.0, rayleigh_stiffness=0.0) -> np.ndarray:
-    """Dense A₀⁻¹ of the rest configuration (zero rows/columns at fixed dofs).
+                    rayleigh_mass=0.0, rayleigh_stiffness=0.0, matrix=None) -> np.ndarray:
+    """Dense A₀⁻¹ of the rest configuration (zero rows/columns at fixed dofs); `matrix`: A₀
+    (rest_matrix's) where the caller has it.
 
     A₀ = (1 + h α_M) M + (h α_K + h²) K is symmetric positive definite on the free dofs (a positive
     lumped mass plus a positive semi-definite stiffness), so it is inverted through its Cholesky
     factor (LAPACK potrf, potri): half the flops of LU's inverse, and exactly symmetric."""
-    A = rest_matrix(mesh, material, dt, rayleigh_mass, rayleigh_stiffness)
+    A = rest_matrix(mesh, material, dt, rayleigh_mass, rayleigh_stiffness) if matrix is None else matrix
     free = free_dofs(mesh.n_points, fixed)
     A_free = A[free][:, free].toarray()
     potrf, potri = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potri"), (A_free,))
