@@ -482,13 +482,13 @@ class ImplicitEuler:
         serial launch, tissue.solver.step_control, takes the step through this and `record_step`)."""
         if self._checked_material is not self.model.material:
             self.check_regime()
+        self.fem.rotation_writes += 1        # the launches write them (the multigrid's: see record_step)
         return self._step_pack(kind), self.scheme, self.fem.rotation_tolerance
 
     def record_step(self, report) -> None:
-        """After a step's launch: note the rotations it computed (see nodal_rotations); count its CG
+        """After a step's launch: note the nodal rotations it computed (nodal_rotations); count its CG
         report (`report`) in the stats; warn of inverted elements once; raise TissueError if the
         state became non-finite."""
-        self.fem.rotation_writes += 1           # the step's launch wrote them (and the multigrid's)
         if self.multigrid is not None:
             self.multigrid.rotations_computed(self.fem.rotation_tolerance)
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)

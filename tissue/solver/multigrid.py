@@ -173,8 +173,8 @@ class Multigrid:
         self._io = [ti.ndarray(vec3, capacity) for _ in range(2)]
 
     def rotations_computed(self, tol: float) -> None:
-        """The solver's step (counted in the FEM's rotation_writes) just wrote nodal_R from the
-        element rotations it wrote."""
+        """The solver's step (its prepare_step counted in the FEM's rotation_writes) just wrote
+        nodal_R from the element rotations it wrote."""
         self._rotations_of = (self.solver.fem.rotation_writes, tol)
 
     def nodal_rotations(self, tol: float):
