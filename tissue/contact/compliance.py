@@ -357,8 +357,9 @@ class WarpedCompliance:
     """One soft body's rest compliance A₀⁻¹ (dense, on the device) and nodal rotations.
 
     Per step: `prepare(jds)` takes the body's rows of H; `add_to(W)` computes, in one launch, the
-    nodal rotations, Hr = H R, U = A₀⁻¹ Hrᵀ restricted to the dofs the rows touch, and
-    W += h Hr U; `correct(λ)` applies x += R h A₀⁻¹ Hrᵀ λ in one more launch.
+    nodal rotations (unless the solver's multigrid computed them this step: see prepare), Hr = H R,
+    U = A₀⁻¹ Hrᵀ restricted to the dofs the rows touch, and W += h Hr U; `correct(λ)` applies
+    x += R h A₀⁻¹ Hrᵀ λ in one more launch.
 
     The nodal rotations average POLAR element rotations whatever the body's elasticity uses: for
     "large" (edge frames) they are computed where the free motion started, x − h v, in one more
@@ -414,7 +415,7 @@ class WarpedCompliance:
             self.C0 = ti.ndarray(self.real, self.C0_host.shape)
             self.C0.from_numpy(self.C0_host.astype(self._np))
         capacity = fem.model.node_capacity   # as the solver's state: a cut within it allocates nothing here
-        if getattr(self, "R", None) is None or self._own_R.shape[0] != capacity:
+        if getattr(self, "_own_R", None) is None or self._own_R.shape[0] != capacity:
             self._own_R = ti.ndarray(ti.types.matrix(3, 3, self.real), capacity)
             self.r0 = ti.ndarray(ti.types.vector(3, self.real), capacity + 1)    # + the total impulse
             self.pushed = ti.ndarray(ti.i32, capacity + 1)                       # touched nodes with r₀ ≠ 0, + their count
