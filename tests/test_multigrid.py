@@ -7,6 +7,7 @@ its iteration counts against block-Jacobi's on a slender stiff beam."""
 import numpy as np
 import pytest
 import scipy.linalg
+import taichi as ti
 
 from test_solver import BEAM, FIXED, MATERIAL, STEP, cantilever_tip, make_solver, rel, standard_state
 from tissue import compilation
@@ -184,3 +185,34 @@ def test_nodal_rotation_where_the_element_rotations_cancel(backend):
     assert any(np.allclose(R[0], r, atol=1e-12) for r in Re[:2])
     assert np.allclose(R[1], turned, atol=1e-12)
     assert np.allclose(R[2], np.eye(3))
+
+
+def test_nodal_rotations_are_shared_while_current(solver):
+    """The solver hands out the multigrid's nodal rotations of its last step (the warped contact
+    compliance reads them instead of computing its own) equal bit for bit to the compliance's own
+    kernel on the FEM's element rotations, and only while they are those rotations' and at the
+    tolerance asked: not after the element rotations were written by another launch (or a launch
+    of the step's taken without recording it), nor after a rebuild, until the next step."""
+    from tissue.contact.compliance import _nodal_rotations
+
+    sim = solver(execution="parallel", preconditioner="multigrid")
+    tol = sim.fem.rotation_tolerance
+    x0, v0 = standard_state(1)
+    sim.set_state(x0, v0)
+    sim.step()
+    shared = sim.nodal_rotations(tol)
+    assert shared is sim.multigrid.arrays["nodal_R"]
+    assert sim.nodal_rotations(2 * tol) is None
+    own = ti.Matrix.ndarray(3, 3, ti.f64, shared.shape)
+    _nodal_rotations(sim.fem.R, *sim.fem.model.gather_index(), own, tol)
+    assert np.array_equal(own.to_numpy(), shared.to_numpy())
+    sim.fem.rotations_numpy(x0)
+    assert sim.nodal_rotations(tol) is None
+    sim.step()
+    assert sim.nodal_rotations(tol) is not None
+    sim.prepare_step()                      # a launch of the step's own (unrecorded) may follow
+    assert sim.nodal_rotations(tol) is None
+    sim.step()
+    assert sim.nodal_rotations(tol) is not None
+    sim.multigrid.rebuild()
+    assert sim.nodal_rotations(tol) is None

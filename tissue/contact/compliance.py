@@ -130,9 +130,10 @@ WARP = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS
 CORRECTION = ti.types.argpack(**{name: ti.types.ndarray() for name in (*SHARED_MEMBERS, "lam", "r0", "pushed",
                                                                        "x", "v")})
 WARP_SIZES = ("n_active", "k_max", "nnz", "n_touched", "q_offset", "pos_offset", "n_rows", "gather", "q_before",
-              "ld_before")
+              "ld_before", "n_rotated")
 WARP_REALS = ("h", "inverse_mass", "tolerance")
-N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS, GATHER, Q_BEFORE, LD_BEFORE = range(len(WARP_SIZES))
+N_ACTIVE, K_MAX, NNZ, N_TOUCHED, Q_OFFSET, POS_OFFSET, N_ROWS, GATHER, Q_BEFORE, LD_BEFORE, N_ROTATED = \
+    range(len(WARP_SIZES))
 H, INVERSE_MASS, TOLERANCE = range(len(WARP_REALS))
 
 
@@ -158,11 +159,12 @@ def _row_translation(k: ti.template(), o_count, o_ptr, i):
 
 @ti.func
 def _rotations_and_hr(k: ti.template(), o_node, nnz, serial: ti.template()):
-    """The nodal rotations (every node: the correction reads them) and kernel 1, Hr = H R (a 3×3
+    """The nodal rotations of the first sizes[N_ROTATED] nodes (every node, the correction reading
+    them; none where R is the solver's: see WarpedCompliance.prepare) and kernel 1, Hr = H R (a 3×3
     block per JDS entry)."""
     tol = k.reals[TOLERANCE]
     ti.loop_config(serialize=serial)
-    for v in range(k.R.shape[0]):
+    for v in range(k.sizes[N_ROTATED]):
         k.R[v] = nodal_rotation(k.Re, k.valence, k.incidence, v, tol)
     ti.loop_config(serialize=serial)
     for e in range(nnz):
@@ -375,8 +377,9 @@ class WarpedCompliance:
     """One soft body's rest compliance A₀⁻¹ (dense, on the device) and nodal rotations.
 
     Per step: `prepare(jds)` takes the body's rows of H; `add_to(W)` computes, in one launch, the
-    nodal rotations, Hr = H R, U = A₀⁻¹ Hrᵀ restricted to the dofs the rows touch, and
-    W += h Hr U; `correct(λ)` applies x += R h A₀⁻¹ Hrᵀ λ in one more launch.
+    nodal rotations (unless the solver's multigrid computed them this step: see prepare), Hr = H R,
+    U = A₀⁻¹ Hrᵀ restricted to the dofs the rows touch, and W += h Hr U; `correct(λ)` applies
+    x += R h A₀⁻¹ Hrᵀ λ in one more launch.
 
     The nodal rotations average POLAR element rotations whatever the body's elasticity uses: for
     "large" (edge frames) they are computed where the free motion started, x − h v, in one more
@@ -431,10 +434,11 @@ class WarpedCompliance:
             self.C0 = ti.ndarray(self.real, self.C0_host.shape)
             self.C0.from_numpy(self.C0_host.astype(self._np))
         capacity = fem.model.node_capacity   # as the solver's state: a cut within it allocates nothing here
-        if getattr(self, "R", None) is None or self.R.shape[0] != capacity:
-            self.R = ti.ndarray(ti.types.matrix(3, 3, self.real), capacity)
+        if getattr(self, "_own_R", None) is None or self._own_R.shape[0] != capacity:
+            self._own_R = ti.ndarray(ti.types.matrix(3, 3, self.real), capacity)
             self.r0 = ti.ndarray(ti.types.vector(3, self.real), capacity + 1)    # + the total impulse
             self.pushed = ti.ndarray(ti.i32, capacity + 1)                       # touched nodes with r₀ ≠ 0, + their count
+        self.R = self._own_R                 # the nodal rotations the launches read (see prepare)
         # One thread on the CPU for bodies of the sizes W is used for (the thread pool's dispatch
         # costs more than it saves at a few hundred rows on 2 cores); parallel above.
         self.serial = backend.current().arch == "cpu" and n < SERIAL_BELOW_NODES
@@ -470,6 +474,7 @@ class WarpedCompliance:
     def update_rotations(self) -> None:
         """Nodal rotations from the element rotations (`element_rotations`; `add_to` also
         computes them, in its own launch)."""
+        self.R = self._own_R
         _nodal_rotations(self.element_rotations(), *self.solver.fem.model.gather_index(), self.R, self._tol)
 
     def nodal_rotations(self) -> np.ndarray:
@@ -481,6 +486,11 @@ class WarpedCompliance:
         last step's (the contact stage keeps the rows of contacts at rest)."""
         self._ready = False
         self._element_rotations = self.element_rotations()     # this step's, kept rows or not
+        # The nodal rotations: the solver's, where its step computed them from these element
+        # rotations at this tolerance (the multigrid's), else computed by this step's launch.
+        shared = self.solver.nodal_rotations(self._tol) if self._own_polar else None
+        self.R = self._own_R if shared is None else shared
+        self._sizes[N_ROTATED] = self.R.shape[0] if shared is None else 0
         if jds is self.jds and self.source is None:
             return
         self.jds = jds
@@ -492,7 +502,7 @@ class WarpedCompliance:
         self.hr = storage.get("hr", jds.nnz, self._mat3)          # (H R) per block
         self.ht = storage.get("ht", jds.n_active, self._mat3)     # (H T) per row
         self._scratch_for_W(1, 1)                   # sized by add_to, the one launch that writes them
-        self._sizes[:] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0, 1, 0, 0
+        self._sizes[:N_ROTATED] = jds.n_active, len(jds.jd_ptr) - 1, jds.nnz, len(jds.touched), 0, 0, 0, 1, 0, 0
         self._reals[:] = self.solver.dt, self.inverse_mass, self._tol
         self._scalars = storage.put("sizes", self._sizes, ti.i32), storage.put("reals", self._reals, real)
 
@@ -605,6 +615,7 @@ class WarpedCompliance:
         if not self.jds.n_active:
             return
         if not self._ready:
+            self.storage.put("sizes", self._sizes, ti.i32)
             _rotate_replayed(self._pack(), self.serial)
             self._ready = True
         _correct_replayed(self._correction_pack(lam), self.serial)

@@ -570,6 +570,9 @@ class CorotationalFEM:
             raise TissueError(f"accumulation: unknown method {accumulation!r}; expected one of {ACCUMULATIONS}")
         self.model = mesh if isinstance(mesh, BodyModel) else BodyModel(mesh, material)
         self.rotation, self.accumulation = rotation, accumulation
+        # Writes of the element rotations R (the solver counts its steps' too): what was computed
+        # from them (the multigrid's nodal rotations) holds while this count has not moved.
+        self.rotation_writes = 0
         self.rotation_tolerance = 1e-13 if backend.current().precision == "f64" else 1e-6
         self._version = None
         self._colouring = None       # (order, offsets) of the colouring ablation; edits drop it
@@ -589,6 +592,7 @@ class CorotationalFEM:
         n, m = model.node_capacity, model.element_capacity
         self.R = ti.ndarray(mat3, m)      # every step recomputes the rotations before using them
         self.R.from_numpy(np.tile(np.eye(3, dtype=real_numpy()), (m, 1, 1)))
+        self.rotation_writes += 1
         self.work_arrays = dict(R=self.R, limited=ti.ndarray(mat3, m), limit_curvature=ti.ndarray(vec3, m),
                                 inverted=ti.ndarray(ti.i32, 1),
                                 buffer=ti.ndarray(vec3, 4 * m if self.accumulation == "gather" else 1),
@@ -651,6 +655,7 @@ class CorotationalFEM:
 
     def rotations_numpy(self, positions: np.ndarray) -> np.ndarray:
         """Element rotations (m, 3, 3) at the given positions (also stored for later products)."""
+        self.rotation_writes += 1
         _rotations_kernel(self.model.pack, self.work, self._vectors(positions), self.rotation, self.rotation_tolerance)
         return self.rotations()
 
@@ -663,6 +668,7 @@ class CorotationalFEM:
         """Elastic nodal forces (n, 3) at the given positions."""
         x = self._vectors(positions)
         if update_rotations:
+            self.rotation_writes += 1
             _rotations_kernel(self.model.pack, self.work, x, self.rotation, self.rotation_tolerance)
         self.scatter_launch("force", x)
         return self._gathered_numpy()

@@ -490,17 +490,27 @@ class ImplicitEuler:
         return (scalars[ITERATION], scalars[RES2], scalars[RHS2], scalars[BREAKDOWN], scalars[NONFINITE],
                 inverted[0])
 
+    def nodal_rotations(self, tol: float):
+        """The multigrid's nodal rotations of the last step (an ndarray of the node capacity:
+        tissue.fem.corotational.nodal_rotation of the FEM's element rotations at `tol`) while they
+        are those of the element rotations as they are now; else None."""
+        return self.multigrid.nodal_rotations(tol) if self.multigrid is not None else None
+
     def prepare_step(self, kind=STEP):
         """What a step's launches take: (the argpack of `kind`, the scheme, the rotations'
         tolerance), after the regime check a changed material needs (a caller fusing more into the
         serial launch, tissue.solver.step_control, takes the step through this and `record_step`)."""
         if self._checked_material is not self.model.material:
             self.check_regime()
+        self.fem.rotation_writes += 1        # the launches write them (the multigrid's: see record_step)
         return self._step_pack(kind), self.scheme, self.fem.rotation_tolerance
 
     def record_step(self, report) -> None:
-        """Count the step's CG report (`report`) in the stats; warn of inverted elements once;
-        raise TissueError if the state became non-finite."""
+        """After a step's launch: note the nodal rotations it computed (nodal_rotations); count its CG
+        report (`report`) in the stats; warn of inverted elements once; raise TissueError if the
+        state became non-finite."""
+        if self.multigrid is not None:
+            self.multigrid.rotations_computed(self.fem.rotation_tolerance)
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),

@@ -161,7 +161,21 @@ class Multigrid:
         arrays["coefficients"].from_numpy(np.array([theta] + [c for step in steps for c in step], dtype=np_real))
         self.A0, self.theta, self.steps = A0, theta, steps
         self.arrays = arrays
+        self._rotations_of = None      # (FEM rotation writes, tolerance) nodal_R was computed at
         self._io = [ti.ndarray(ti.types.vector(3, backend.current().real), capacity) for _ in range(2)]
+
+    def rotations_computed(self, tol: float) -> None:
+        """The solver's step (its prepare_step counted in the FEM's rotation_writes) just wrote
+        nodal_R from the element rotations it wrote."""
+        self._rotations_of = (self.solver.fem.rotation_writes, tol)
+
+    def nodal_rotations(self, tol: float):
+        """nodal_R (an ndarray of the node capacity) where it is the nodal rotations of the FEM's
+        element rotations as they are now, at `tol`; else None (none computed since the last
+        rebuild, or the element rotations written since)."""
+        if self._rotations_of != (self.solver.fem.rotation_writes, tol):
+            return None
+        return self.arrays["nodal_R"]
 
     # ---- standalone launch (tests) -----------------------------------------------------------
 
