@@ -349,6 +349,25 @@ def test_grasp_force_is_continuous_across_steps(backend):
     assert single_jumps.max() > 10 * jumps[handover].max()            # measured 0.44 N against 0.011 N
 
 
+def test_liver_grasp_inverts_no_element(backend):
+    """The scene as `tissue run liver_grasp` runs it (1,300 tetrahedra, 100 steps): no element of
+    either body inverts, so the run warns of none. Before the flat jaws, the eased path and the
+    withdrawal level with the lobe (6dce013): up to 2 at a time, at 0.84-1.08 s the rounded jaws
+    wedging the lobe's surface apart, at 2.4 s the pull's abrupt stop, at 3.5 s the lower jaw
+    driven into the released lobe's underside. The smallest det F over the run (0.47, the liver
+    at 3.2 s) leaves the margin asserted. 10 s here."""
+    from scenes.liver_grasp import LiverGrasp
+    from tissue.simulation import Simulation
+
+    sim = Simulation(LiverGrasp(), arch="cpu", precision="f64")
+    sim.run()
+    for name, body in sim.bodies.items():
+        assert max(body.solver.stats.history["inverted_elements"]) == 0, name
+        x, X, T = body.positions(), body.rest, body.mesh.tets
+        volume = lambda p: np.linalg.det(np.stack([p[T[:, k]] - p[T[:, 0]] for k in (1, 2, 3)], axis=-1))
+        assert (volume(x) / volume(X)).min() > 0.2, name
+
+
 # ----------------------------------------------------------------------------------------------
 # devices
 # ----------------------------------------------------------------------------------------------
@@ -371,6 +390,38 @@ def test_trajectory_interpolates_and_round_trips_a_file(tmp_path):
     (tmp_path / "bad.csv").write_text("a,b\n")
     with pytest.raises(TissueError, match="bad.csv"):
         Trajectory.load(tmp_path / "bad.csv")
+
+
+def test_smooth_trajectory_eases_in_and_out_of_every_key():
+    """smooth: the same keys and midpoints as the linear path, the velocity continuous and zero at
+    each key (the linear path's jumps there kicked liver_grasp's jaws into the lobe)."""
+    from tissue.haptics.device import Trajectory
+
+    keys = [[0.0, 0.0, 0.0, 0.0, 0.01], [1.0, 0.1, 0.0, -0.2, 0.03], [1.5, 0.1, 0.05, -0.2, 0.03]]
+    linear, smooth = Trajectory(keys), Trajectory(keys, smooth=True)
+    for t in (0.0, 0.5, 1.0, 1.25, 1.5):
+        assert np.allclose(smooth(t).position, linear(t).position) and smooth(t).jaw == pytest.approx(linear(t).jaw)
+    assert np.allclose(smooth(0.25).position, [0.1 * 0.15625, 0.0, -0.2 * 0.15625])    # 3w² − 2w³ at w = 1/4
+    h = 1e-6
+    for t in (1e-6 + h, 1.0, 1.5 - h):       # the keys: speed O(h) against the linear path's 0.22 m/s
+        assert np.linalg.norm(smooth(t + h).position - smooth(t - h).position) / (2 * h) < 1e-5
+
+
+def test_a_flat_jaw_presses_along_the_closing_axis():
+    """jaw_width > 0: each jaw a box (length × width × 2 radius), so a contact point under its face
+    is pushed along the closing axis wherever it lies across the face; a rounded bar pushes a point
+    beside its axis sideways as much as down (the wedge that inverted liver_grasp's elements)."""
+    from tissue.contact.obstacles import Box, Capsule
+    from tissue.haptics.layer import Tool
+    from tissue.options import validate
+
+    flat = Tool(keyframes=(0.0, 0.0, 0.0, 0.0, 0.02), jaw_width=0.012).build_instrument("g")
+    bar = Tool(keyframes=(0.0, 0.0, 0.0, 0.0, 0.02)).build_instrument("g")
+    assert [type(s) for jaw in flat.jaws for s in jaw.obstacle.shapes] == [Box, Box]
+    assert flat.jaws[0].obstacle.shapes[0].half == (0.012, 0.006, 0.004)
+    assert [type(s) for jaw in bar.jaws for s in jaw.obstacle.shapes] == [Capsule, Capsule]
+    with pytest.raises(TissueError, match="jaw_width"):
+        validate(Tool(jaw_width=-0.01))
 
 
 def test_quaternions_round_trip():

@@ -68,9 +68,12 @@ class Trajectory:
     before the time), held before the first and after the last.
 
     keys: (k, 9) rows t, x, y, z, qw, qx, qy, qz, jaw, or (k, 5) rows t, x, y, z, jaw (orientation:
-    `orientation`, identity by default). A file (`Trajectory.load`): .npy or .csv of such rows."""
+    `orientation`, identity by default). A file (`Trajectory.load`): .npy or .csv of such rows.
+    smooth: ease in and out of every key (smoothstep, 3w² − 2w³, along each segment), as a hand
+    moves from pose to pose: the device's velocity is continuous, zero at the keys, where the
+    linear path's jumps kick the instrument's jaws into whatever they touch."""
 
-    def __init__(self, keys, orientation=None):
+    def __init__(self, keys, orientation=None, smooth: bool = False):
         keys = np.asarray(keys, dtype=np.float64)
         if keys.ndim != 2 or keys.shape[1] not in (5, 9) or len(keys) == 0:
             raise TissueError(f"trajectory: expected rows (t, x, y, z, jaw) or (t, x, y, z, qw, qx, qy, qz, jaw), "
@@ -82,7 +85,7 @@ class Trajectory:
         if keys.shape[1] == 5:
             q = matrix_to_quaternion(np.eye(3) if orientation is None else orientation)
             keys = np.column_stack([keys[:, :4], np.tile(q, (len(keys), 1)), keys[:, 4]])
-        self.keys = keys
+        self.keys, self.smooth = keys, smooth
         self._times = keys[:, 0].tolist()
         self._R = [quaternion_to_matrix(k[4:8]) for k in keys]
 
@@ -117,6 +120,8 @@ class Trajectory:
             row, i = k[-1], len(times) - 1
         else:
             w = (time - times[i]) / (times[i + 1] - times[i])
+            if self.smooth:
+                w = w * w * (3.0 - 2.0 * w)
             row = k[i] + w * (k[i + 1] - k[i])
         return DevicePose(row[1:4].copy(), self._R[i], float(row[8]), float(time))
 

@@ -39,10 +39,14 @@ class Tool(Options):
     """An instrument held by a scripted device (tissue.haptics.instrument).
 
     kind: 'grasper' (two jaws `jaw` apart along the tool's z, each a rounded bar: a capsule of
-    `radius` and `jaw_length` along the tool's x) or 'probe' (a sphere of `radius`).
-    keyframes: (t, x, y, z, jaw opening) per key, the device's path, interpolated linearly;
-    orientation: the tool's axes (degrees about x, y, z). mass (kg), damping (N·s/m), stiffness
-    (N/m): the virtual coupling. friction: Coulomb μ of contacts on the jaws (None: the Contact's).
+    `radius` and `jaw_length` along the tool's x; with `jaw_width` > 0 a flat jaw instead: a box
+    `jaw_length` × `jaw_width` × 2 `radius`, x by y by z) or 'probe' (a sphere of `radius`). A flat
+    jaw wider than the spacing of the tissue's contact points presses them along the closing axis;
+    a bar narrower than it can pass between them and push them apart sideways (`liver_grasp`).
+    keyframes: (t, x, y, z, jaw opening) per key, the device's path, interpolated linearly, or
+    with `smooth` eased in and out of each key (tissue.haptics.device.Trajectory); orientation:
+    the tool's axes (degrees about x, y, z). mass (kg), damping (N·s/m), stiffness (N/m): the
+    virtual coupling. friction: Coulomb μ of contacts on the jaws (None: the Contact's).
     """
 
     kind: Literal["grasper", "probe"] = "grasper"
@@ -50,6 +54,8 @@ class Tool(Options):
     orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)
     jaw_length: float = 0.024
     radius: float = 0.004
+    jaw_width: float = 0.0
+    smooth: bool = False
     mass: float = 0.02
     damping: float = 2.0
     stiffness: float = 300.0
@@ -64,6 +70,7 @@ class Tool(Options):
         require(all(j >= 0 for j in self.keyframes[4::5]), "keyframes", "jaw openings must be >= 0")
         require(self.jaw_length > 0, "jaw_length", f"must be > 0 m, got {self.jaw_length}")
         require(self.radius > 0, "radius", f"must be > 0 m, got {self.radius}")
+        require(self.jaw_width >= 0, "jaw_width", f"must be >= 0 m (0: a rounded bar), got {self.jaw_width}")
         require(self.mass > 0, "mass", f"must be > 0 kg, got {self.mass}")
         require(self.damping >= 0, "damping", f"must be >= 0, got {self.damping}")
         require(self.stiffness >= 0, "stiffness", f"must be >= 0, got {self.stiffness}")
@@ -71,16 +78,17 @@ class Tool(Options):
 
     def trajectory(self) -> Trajectory:
         return Trajectory(np.asarray(self.keyframes, dtype=np.float64).reshape(-1, 5),
-                          orientation=rotation_matrix(self.orientation))
+                          orientation=rotation_matrix(self.orientation), smooth=self.smooth)
 
     def build_instrument(self, name: str) -> Instrument:
         """The instrument, its device the scripted trajectory (the contact layer calls this)."""
-        from ..contact.obstacles import Capsule, Sphere
+        from ..contact.obstacles import Box, Capsule, Sphere
 
         coupling = Coupling(self.mass, self.damping, self.stiffness)
         if self.kind == "grasper":
             half = 0.5 * self.jaw_length
-            jaw = Capsule((-half, 0.0, 0.0), (half, 0.0, 0.0), self.radius)
+            jaw = (Box((0.0, 0.0, 0.0), (half, 0.5 * self.jaw_width, self.radius)) if self.jaw_width > 0
+                   else Capsule((-half, 0.0, 0.0), (half, 0.0, 0.0), self.radius))
             instrument = grasper([jaw], coupling, axis=(0.0, 0.0, 1.0),
                                  friction=self.friction, name=name)
         else:
