@@ -210,6 +210,13 @@ class BlockJacobi:
             self.arrays["coefficients"].from_numpy(np.ones(1, dtype=real_numpy()))
             self._capacity = capacity
 
+    def rotations_computed(self, tol: float) -> None:
+        """Nothing to note: without a coarse space the cycle computes no nodal rotations."""
+
+    def nodal_rotations(self, tol: float):
+        """None: the step computed no nodal rotations (Multigrid.nodal_rotations)."""
+        return None
+
 
 def _arrays(fine: int, scratch: int, coarse: int, entries: int, coefficients: int) -> dict:
     """The multigrid's members of a step's argpack, unfilled: `fine` rows of P and of the nodal
