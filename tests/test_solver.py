@@ -458,3 +458,25 @@ def test_inverted_elements_are_counted_and_reported(backend):
         sim.step()
     assert expected == mesh.n_tets
     assert sim.stats.counters["inverted_elements"] == expected
+
+
+def test_a_body_at_rest_is_counted_apart_from_cg_convergence(backend):
+    """Reference: a body at rest, its rest shape turned rigidly, without gravity, has f = 0 exactly
+    in exact arithmetic, so b is rounding (‖b‖ ~ 1e-14 here) and CG ends by SOFA's denominator rule
+    |pᵀAp| ≤ threshold with a relative residual above the tolerance that says nothing of
+    convergence: the step counts it as such (cg_threshold_stop, left out of `tissue run`'s
+    residual line) and moves the body by rounding only. The same body under gravity ends by the
+    residual rule and is not counted apart."""
+    Q = Rotation.from_rotvec([0.5, 1.2, -0.7]).as_matrix()
+    at_rest = make_solver(cg=CGSettings(25, 1e-3), dt=0.01, gravity=(0.0, 0.0, 0.0))
+    at_rest.set_state(BEAM.points @ Q.T, np.zeros_like(BEAM.points))
+    at_rest.step()
+    counters = at_rest.stats.counters
+    assert counters["cg_threshold_stop"] == 1 and counters["cg_breakdown"] == 0
+    assert counters["cg_residual"] > 1e-3 and counters["cg_iterations"] < 25     # measured 1.5e-2, 10
+    assert np.abs(at_rest.velocities()).max() < 1e-12
+    loaded = make_solver(cg=CGSettings(25, 1e-3), dt=0.01, gravity=(0.0, 0.0, -9.81))
+    loaded.set_state(BEAM.points @ Q.T, np.zeros_like(BEAM.points))
+    loaded.step()
+    assert loaded.stats.counters["cg_threshold_stop"] == 0
+    assert loaded.stats.counters["cg_residual"] <= 1e-3

@@ -150,12 +150,9 @@ def cmd_run(args) -> int:
         bar.close()
     finished, compiled = time.perf_counter(), compilation.snapshot() - compiled_at_start
     print(sim.timing_table())
-    history = sim.stats.history
-    if history.get("cg_iterations"):
-        # The largest over bodies and steps: the run's worst step, not its last.
-        print(f"CG: {statistics.median(history['cg_iterations']):.0f} iterations per step (median; at most "
-              f"{max(history['cg_iterations']):.0f}), relative residual ‖r‖/‖b‖ at most "
-              f"{max(history['cg_residual']):.1e} over the run")
+    line = _cg_line(sim)
+    if line:
+        print(line)
     # Kernels compile on their first launch, in whichever phase that falls: taken out of the
     # phases and shown on their own, so that the phases add up to the command's wall time.
     output_compile = compiled.seconds - build_compile - run_compile
@@ -167,6 +164,27 @@ def cmd_run(args) -> int:
     vtu = sum(len(series.steps) for series in output.series.values()) if output.series is not None else 0
     print(f"wrote {out}/: {', '.join(shown)}" + (f" (+{vtu} .vtu files)" if vtu else ""))
     return 0
+
+
+def _cg_line(sim) -> str | None:
+    """The run's CG summary: iterations per step (over bodies and steps), and the largest relative
+    residual of the solves that the residual rule or the cap ended, the run's worst, not its last;
+    those that SOFA's denominator rule ended, a body at rest (ImplicitEuler.record_step), apart."""
+    solves = [body.solver.stats.history for body in sim.bodies.values()]
+    iterations = [i for h in solves for i in h.get("cg_iterations", [])]
+    if not iterations:
+        return None
+    residuals, at_rest = [], 0
+    for h in solves:
+        for residual, rest in zip(h["cg_residual"], h["cg_threshold_stop"]):
+            at_rest += rest
+            if not rest:
+                residuals.append(residual)
+    line = (f"CG: {statistics.median(iterations):.0f} iterations per step (median; at most {max(iterations):.0f}), "
+            f"relative residual ‖r‖/‖b‖ at most {max(residuals, default=0.0):.1e} over the run")
+    if at_rest:
+        line += f" ({at_rest} solves with b at rounding level, a body at rest, ended by |pᵀAp| ≤ threshold)"
+    return line
 
 
 def cmd_list(args) -> int:

@@ -513,8 +513,13 @@ class ImplicitEuler:
             self.multigrid.rotations_computed(self.fem.rotation_tolerance)
         iterations, res2, rhs2, breakdown, nonfinite, inverted = (float(c) for c in report)
         rel = math.sqrt(max(res2, 0.0) / rhs2) if rhs2 > 0 else 0.0
+        # Ended by SOFA's denominator rule (|pᵀAp| ≤ threshold) before the residual rule or the
+        # cap: a right-hand side at rounding level (a body at rest), whose relative residual
+        # measures rounding, not convergence (counted apart: tissue.cli's CG line).
+        cg = self.cg
+        at_threshold = not breakdown and iterations < cg.max_iterations and res2 > cg.tolerance ** 2 * rhs2
         self.stats.count(cg_iterations=int(iterations), cg_residual=rel, cg_breakdown=int(breakdown),
-                         inverted_elements=int(inverted))
+                         cg_threshold_stop=int(at_threshold), inverted_elements=int(inverted))
         if inverted and not self._warned_inversion:
             self._warned_inversion = True
             load, step = f"E={self.fem.material.young}", f"dt={self.dt}"
