@@ -50,6 +50,17 @@ def print_machine(info: dict) -> None:
           f"taichi {info['taichi']} · commit {info['commit']} · {info['date']}")
 
 
+def start_on_cpu() -> dict:
+    """Taichi on the CPU in float64, and the machine (machine()), printed: the start of a benchmark
+    that steps in its own process."""
+    from tissue import backend
+
+    backend.init(arch="cpu", precision="f64")
+    info = machine()
+    print_machine(info)
+    return info
+
+
 def time_steps(step, steps: int, warmup: int = 3) -> dict:
     """Median and spread of the wall time of `step()` (after ti.sync), warm-up excluded."""
     import taichi as ti

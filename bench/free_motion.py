@@ -29,7 +29,7 @@ from collections import Counter
 import numpy as np
 
 from bench import contact as bc
-from bench.common import machine, print_machine, write_results
+from bench.common import start_on_cpu, write_results
 
 SETTINGS = {"apart": dict(fused=False, warm=False), "fused": dict(fused=True, warm=False),
             "fused+warm": dict(fused=True, warm=True)}
@@ -129,11 +129,7 @@ def main(argv=None) -> None:
     parser.add_argument("--scenes", nargs="*", default=None)
     parser.add_argument("--out", default="free_motion", help="the results' name under bench/results")
     args = parser.parse_args(argv)
-    from tissue import backend
-
-    backend.init(arch="cpu", precision="f64")
-    info = machine()
-    print_machine(info)
+    info = start_on_cpu()
     results = {}
     for name, make in scenes().items():
         if args.scenes and name not in args.scenes:

@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from bench.common import machine, print_machine, write_results
+from bench.common import start_on_cpu, write_results
 
 
 def run(rotation: str, compliance: str) -> dict:
@@ -67,11 +67,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rotations", default="polar,invertible", type=lambda text: text.split(","))
     args = parser.parse_args(argv)
-    from tissue import backend
-
-    backend.init(arch="cpu", precision="f64")
-    info = machine()
-    print_machine(info)
+    info = start_on_cpu()
     rows = []
     for rotation in args.rotations:
         for compliance in ("warped", "exact"):

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from bench.common import machine, print_machine, write_results
+from bench.common import start_on_cpu, write_results
 
 SCENES = ("liver_press", "liver", "beam", "organs", "incline")
 
@@ -60,11 +60,7 @@ def main(argv=None) -> None:
     parser.add_argument("--scenes", nargs="+", choices=SCENES, default=list(SCENES))
     parser.add_argument("--out", default="smoothing_range", help="the results' name under bench/results")
     args = parser.parse_args(argv)
-    from tissue import backend
-
-    backend.init(arch="cpu", precision="f64")
-    info = machine()
-    print_machine(info)
+    info = start_on_cpu()
     rows = []
     for name in args.scenes:
         first = None

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from bench.common import machine, print_machine, write_results
+from bench.common import start_on_cpu, write_results
 
 SCENES = ("beam", "liver", "liver_press")
 SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_control=energy", "solver.energy_budget=false"]}
@@ -73,11 +73,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", help="the results' name under bench/results (default: step_control_budget with "
                         "--budget, else step_control)")
     args = parser.parse_args(argv)
-    from tissue import backend
-
-    backend.init(arch="cpu", precision="f64")
-    info = machine()
-    print_machine(info)
+    info = start_on_cpu()
     rows = []
     for name in args.scenes:
         row = measure(name, args.rounds, args.steps, BUDGET if args.budget else SETTINGS)
