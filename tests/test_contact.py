@@ -95,6 +95,36 @@ def test_primitive_distances_match_closed_forms(backend):
         np.testing.assert_allclose(references[name](c.closest), 0.0, atol=1e-12, err_msg=name)
 
 
+def test_culled_primitives_give_the_nearest_within_alarm(backend):
+    """The primitives' boxes and their groups' boxes (a rib's pieces) skip only what is beyond the
+    alarm distance: every point finds the nearest of 20 rib capsules and a sphere, as a search
+    over all of them does."""
+    from scenes.liver_press import rib_segments
+    from tissue.contact.detection import Detector, _primitive_bounds
+    from tissue.contact.obstacles import Capsule, RigidObstacle, Sphere
+
+    ends = np.array(rib_segments()).reshape(-1, 2, 3)
+    ribs = RigidObstacle([Capsule(a, b, 0.006) for a, b in ends] + [Sphere((-0.04, 0.0, 0.01), 0.02)])
+    rows = _primitive_bounds(ribs.bounding_boxes(), 0)
+    assert np.unique(rows[:, 12]).tolist() == [5, 10, 15, 20, 21]      # a group per rib, the sphere alone
+
+    def gaps(x):
+        a, b = ends[:, 0], ends[:, 1]
+        s = np.clip(np.einsum("pki,ki->pk", x[:, None] - a, b - a) / np.einsum("ki,ki->k", b - a, b - a), 0, 1)
+        axis = a + s[..., None] * (b - a)
+        return np.c_[np.linalg.norm(x[:, None] - axis, axis=2) - 0.006,
+                     np.linalg.norm(x - [-0.04, 0.0, 0.01], axis=1) - 0.02]
+
+    rng = np.random.default_rng(1)
+    p = rng.uniform([-0.15, -0.08, -0.03], [0.0, 0.11, 0.06], (3000, 3))
+    faces = np.arange(len(p)).reshape(-1, 3)
+    alarm = 0.004
+    c = Detector([faces], [ribs], soft_soft=False).detect([p], alarm)
+    nearest = gaps(p).min(axis=1)
+    np.testing.assert_array_equal(np.sort(c.vertex), np.flatnonzero(nearest <= alarm))
+    np.testing.assert_allclose(c.gap, nearest[c.vertex], atol=1e-12)
+
+
 def test_rigid_contact_within_alarm_at_the_step_start_is_found(backend):
     """Detection reads the free positions, but a point within the alarm distance of a rigid
     obstacle at the step's start (x − h v) is a contact too: the free motion ignores contacts, so

@@ -11,9 +11,10 @@ contacts c is a point of a triangle of the other body with barycentric weights w
 g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
 
   soft–rigid  one thread per (sample, obstacle) pair, the nearest of the obstacle's primitives
-              in the obstacle's frame, skipping those whose bounding ball is beyond the alarm
-              distance; triangle-mesh obstacles are queried on the host with open3d (closest
-              point, and inside/outside by ray parity).
+              in the obstacle's frame, skipping those whose bounding box, or their group's (a
+              run of touching primitives: a rib), is beyond the alarm distance; triangle-mesh
+              obstacles are queried on the host with open3d (closest point, and inside/outside
+              by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
               distance, binned in a uniform grid built on the device each step (box, counting
               sort); narrow phase: one thread per sample, exact point–triangle distance to the
@@ -240,6 +241,13 @@ def _near(balls: ti.template(), k, p, alarm):
 
 
 @ti.func
+def _in_box(boxes: ti.template(), k, col, p, reach):
+    """Whether p lies within `reach` of the box in row k's columns col..col+5 (low, high corner)."""
+    d = ti.max(_p3(boxes, k, col) - p, p - _p3(boxes, k, col + 3), 0.0)
+    return d.dot(d) <= reach * reach
+
+
+@ti.func
 def _cell_range(lo, hi, origin, cell, dims):
     a = ti.max(ti.cast(ti.floor((lo - origin) / cell), ti.i32), 0)
     b = ti.min(ti.cast(ti.floor((hi - origin) / cell), ti.i32), dims - 1)
@@ -247,7 +255,7 @@ def _cell_range(lo, hi, origin, cell, dims):
 
 
 # The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
-# the start of the step) velocities, and the obstacles' primitives and bounding balls (RIGID:
+# the start of the step) velocities, and the obstacles' primitives and their bounds (RIGID:
 # what the obstacles' launch reads; the launcher costs per ndarray, replayed or not); the soft
 # launch's adds body B's positions, surface, vertex normals and triangle grid.
 RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds")
@@ -287,14 +295,21 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), out: ti.types.nd
         moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
         reach = alarm + moved.norm()
         best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-        # Bounding balls (radius < 0: unbounded, a plane): a primitive whose ball is farther
-        # than `reach` cannot be within it, so it is skipped (the obstacle's ball: all of them).
+        # Bounds farther than `reach` skip what they hold, which cannot be within it: the
+        # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
+        # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
+        # tested in order, so the nearest (ties: the first) is the one all of them would give.
         if _near(det.bounds, o, p, reach):
-            for k in range(det.prm_offsets[o], det.prm_offsets[o + 1]):
-                if _near(det.prm_bounds, k, p, reach):
-                    r = _closest_primitive(det.prm, k, p)
-                    if r[0] < best[0]:
-                        best = r
+            k = det.prm_offsets[o]
+            while k < det.prm_offsets[o + 1]:
+                end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                if _in_box(det.prm_bounds, k, 6, p, reach):
+                    for j in range(k, end):
+                        if _in_box(det.prm_bounds, j, 0, p, reach):
+                            r = _closest_primitive(det.prm, j, p)
+                            if r[0] < best[0]:
+                                best = r
+                k = end
         # Within `alarm` at the free position, or at the step's start (the gap less the free
         # motion along the normal): see the module docstring.
         start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
@@ -465,6 +480,28 @@ class _Surface:
         self.out = out                            # its rows of the Detector's _HitBuffer
 
 
+def _primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
+    """(P, 13) rows of an obstacle's primitives (the first at index `start` among all): its box
+    (6), its group's box (6) and the index past its group (1; read at a group's first primitive).
+    Groups are runs of consecutive primitives whose boxes touch the previous one's, at most
+    ⌈√P⌉ long: a rib's pieces, the ribs side by side (a sample beside one rib skips the others)."""
+    group = np.zeros(len(boxes), int)
+    size, first = int(np.ceil(np.sqrt(len(boxes)))), 0        # (first: where the current group starts)
+    for k in range(1, len(boxes)):
+        touch = np.all(boxes[k, :3] <= boxes[k - 1, 3:]) and np.all(boxes[k - 1, :3] <= boxes[k, 3:])
+        if not touch or k - first >= size:
+            first = k
+        group[k] = group[k - 1] + (first == k)
+    rows = np.zeros((len(boxes), 13))
+    for g in np.unique(group):
+        members = np.flatnonzero(group == g)
+        rows[members, :6] = boxes[members]
+        rows[members, 6:9] = boxes[members, :3].min(axis=0)
+        rows[members, 9:12] = boxes[members, 3:].max(axis=0)
+        rows[members, 12] = start + members[-1] + 1
+    return rows
+
+
 class _HitBuffer:
     """Every body's detection output in one buffer, body after body: a row per sample, then one
     row where a soft launch leaves the room its triangle grid needed (out[-1]), each row a slot
@@ -521,16 +558,18 @@ class Detector:
         prims = [o.primitives for o in self.obstacles]
         counts = [len(p) for p in prims]
         self.has_primitives = sum(counts) > 0
-        balls = [o.bounding_balls() for o in self.obstacles]
+        offsets = np.r_[0, np.cumsum(counts)]
         self._prm = ti.ndarray(self.real, (max(1, sum(counts)), 16))
-        self._prm_offsets = _array(np.r_[0, np.cumsum(counts)].astype(np.int32), ti.i32)
-        self._prm_bounds = ti.ndarray(self.real, (max(1, sum(counts)), 4))
-        self._bounds = ti.ndarray(self.real, (max(1, len(balls)), 4))
+        self._prm_offsets = _array(offsets.astype(np.int32), ti.i32)
+        self._prm_bounds = ti.ndarray(self.real, (max(1, sum(counts)), 13))
+        self._bounds = ti.ndarray(self.real, (max(1, len(self.obstacles)), 4))
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
-            self._prm_bounds.from_numpy(np.concatenate([b for b, _ in balls]).astype(self._np))
-        if balls:
-            self._bounds.from_numpy(np.array([ball for _, ball in balls], dtype=self._np))
+            self._prm_bounds.from_numpy(np.concatenate(
+                [_primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
+            ).astype(self._np))
+        if self.obstacles:
+            self._bounds.from_numpy(np.array([o.bounding_balls()[1] for o in self.obstacles], dtype=self._np))
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds

@@ -231,6 +231,24 @@ class RigidObstacle:
         centre = 0.5 * (balls[:, :3].min(axis=0) + balls[:, :3].max(axis=0))
         return balls, np.r_[centre, np.max(np.linalg.norm(balls[:, :3] - centre, axis=1) + balls[:, 3])]
 
+    def bounding_boxes(self) -> np.ndarray:
+        """(P, 6) box (low corner, high corner) around each primitive, in the obstacle's frame;
+        ±1e300 where unbounded (a plane)."""
+        boxes = []
+        for row in self.primitives:
+            code, a = int(row[0]), row[1:4]
+            if code == SPHERE:
+                boxes.append(np.r_[a - row[4], a + row[4]])
+            elif code == CAPSULE:
+                b, r = row[4:7], row[7]
+                boxes.append(np.r_[np.minimum(a, b) - r, np.maximum(a, b) + r])
+            elif code == BOX:
+                extent = np.abs(row[7:16].reshape(3, 3)) @ row[4:7]
+                boxes.append(np.r_[a - extent, a + extent])
+            else:
+                boxes.append(np.r_[np.full(3, -1e300), np.full(3, 1e300)])
+        return np.array(boxes).reshape(-1, 6)
+
     def pose(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         if self.motion is None:
             return self._rest
