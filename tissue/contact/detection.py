@@ -569,7 +569,7 @@ class Detector:
                 [_primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
         if self.obstacles:
-            self._bounds.from_numpy(np.array([o.bounding_balls()[1] for o in self.obstacles], dtype=self._np))
+            self._bounds.from_numpy(np.array([o.bounding_ball() for o in self.obstacles], dtype=self._np))
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
         self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds

@@ -210,9 +210,9 @@ class RigidObstacle:
             offset += len(p)
         return np.concatenate(points), np.concatenate(triangles).astype(np.int64)
 
-    def bounding_balls(self) -> tuple[np.ndarray, np.ndarray]:
-        """((P, 4) ball (centre, radius) around each primitive, (4,) a ball around all of them), in
-        the obstacle's frame; radius -1 where unbounded (a plane) or empty (no primitive)."""
+    def bounding_ball(self) -> np.ndarray:
+        """(4,) a ball (centre, radius) around all its primitives, from a ball around each, in the
+        obstacle's frame; radius -1 where unbounded (a plane) or empty (no primitive)."""
         balls = []
         for row in self.primitives:
             code, a = int(row[0]), row[1:4]
@@ -227,9 +227,9 @@ class RigidObstacle:
                 balls.append(np.r_[0.0, 0.0, 0.0, -1.0])
         balls = np.array(balls).reshape(-1, 4)
         if not len(balls) or np.any(balls[:, 3] < 0):
-            return balls, np.r_[0.0, 0.0, 0.0, -1.0]
+            return np.r_[0.0, 0.0, 0.0, -1.0]
         centre = 0.5 * (balls[:, :3].min(axis=0) + balls[:, :3].max(axis=0))
-        return balls, np.r_[centre, np.max(np.linalg.norm(balls[:, :3] - centre, axis=1) + balls[:, 3])]
+        return np.r_[centre, np.max(np.linalg.norm(balls[:, :3] - centre, axis=1) + balls[:, 3])]
 
     def bounding_boxes(self) -> np.ndarray:
         """(P, 6) box (low corner, high corner) around each primitive, in the obstacle's frame;
