@@ -29,6 +29,11 @@ Writes bench/results/startup.json (or NAME.json with --out NAME).
 (a temporary git worktree), alternately for --rounds rounds, each run with caches of its own;
 medians of the wall, of the run's CPU seconds (user + system, all threads: what a loaded machine
 inflates least) and of its split. Writes bench/results/startup_versus.json (or NAME.json).
+
+--write-bytecode: the runs may write Python's bytecode (`__pycache__`) even where the environment
+sets PYTHONDONTWRITEBYTECODE (as these sessions' do), so that, as on a user's machine, only a
+checkout's first run compiles tissue's sources to bytecode; without it, every run does (0.1 s).
+The JSON records which.
 """
 
 from __future__ import annotations
@@ -146,10 +151,15 @@ def versus(other: str, scenes: list[str], rounds: int, steps: int, arch: str, in
         for caches, r in by_caches.items():
             print(f"{scene:<12} {caches:<6} {r['this']['wall_s']:12.1f} {r['other']['wall_s']:9.1f} "
                   f"{r['this']['cpu_s']:12.1f} {r['other']['cpu_s']:9.1f}")
-    write_results(out, dict(machine=info, other=other, rounds=rounds, steps=steps,
+    write_results(out, dict(machine=info, other=other, rounds=rounds, steps=steps, bytecode=_bytecode(),
                                          load_average_before_after=[[round(x, 2) for x in load],
                                                                     [round(x, 2) for x in os.getloadavg()]],
                                          scenes=results, runs=runs))
+
+
+def _bytecode() -> str:
+    """Whether the runs compile tissue's sources to bytecode in each run or read it from __pycache__."""
+    return "compiled in every run" if os.environ.get("PYTHONDONTWRITEBYTECODE") else "written once, then read"
 
 
 def main(argv=None) -> None:
@@ -162,7 +172,11 @@ def main(argv=None) -> None:
     parser.add_argument("--fill-also", nargs="+", default=[], metavar="SCENE",
                         help="scenes that also fill the caches before each warm run, unmeasured")
     parser.add_argument("--out", help="the JSON's name under bench/results (default startup, or startup_versus)")
+    parser.add_argument("--write-bytecode", action="store_true",
+                        help="let the runs write __pycache__ despite PYTHONDONTWRITEBYTECODE (see the docstring)")
     args = parser.parse_args(argv)
+    if args.write_bytecode:
+        os.environ.pop("PYTHONDONTWRITEBYTECODE", None)      # the runs' environment is this one's
 
     from tissue import backend
 
@@ -185,7 +199,7 @@ def main(argv=None) -> None:
             print(f"{row['scene']:<12} {row['caches']:<6} {row['wall_s']:7.1f} {row['mesh_s']:7.2f} "
                   f"{row['compile_s']:9.1f} {row['machine_code_s']:9.1f} {row['kernels']:7d} {row['simulate_s']:10.2f} {row['other_s']:7.1f}",
                   flush=True)
-    write_results(args.out or "startup", dict(machine=info, steps=args.steps, fillers=[" ".join(f) for f in FILLERS],
+    write_results(args.out or "startup", dict(machine=info, steps=args.steps, bytecode=_bytecode(), fillers=[" ".join(f) for f in FILLERS],
                                   runs=rows, topology_edit=edit))
 
 

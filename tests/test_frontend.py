@@ -83,7 +83,7 @@ def test_class_check_equals_taichi_own():
 def test_fast_wrapper_equals_textwrap():
     """get_pos_info wraps each source line and its caret line at 80 columns: every line of tissue's
     own source, its caret-line shapes, and the cases the fast path leaves to TextWrapper (tabs,
-    other whitespace, non-ASCII, longer than 80 columns)."""
+    other whitespace, non-ASCII, longer than 80 columns), each twice: the second from its memo."""
     lines = [line for path in sorted(Path(frontend.__file__).parent.rglob("*.py"))
              for line in path.read_text().splitlines()]
     shapes = [" " * 4 + "^" * 10, " " * 8 + "^" * 3 + " " * 20, "^" * 80, " " * 80, ""]
@@ -91,8 +91,10 @@ def test_fast_wrapper_equals_textwrap():
              "a \u3000", "long-hyphenated-" * 6, "  x = 1   ", "   "]
     wrapper, fast = textwrap.TextWrapper(width=80), frontend._Wrapper(width=80)
     assert len(lines) > 1000
-    for text in lines + shapes + edges:
+    for text in (lines + shapes + edges) * 2:
         assert fast.wrap(text) == wrapper.wrap(text), repr(text)
+    fast.wrap("x" * 81).append("changed by its caller")
+    assert fast.wrap("x" * 81) == wrapper.wrap("x" * 81)
 
 
 def test_memoised_fill_equals_textwrap():

@@ -78,13 +78,22 @@ def _get_pos_info(ctx, node) -> str:
 class _Wrapper(textwrap.TextWrapper):
     """TextWrapper, with the answer for a line of printable ASCII that fits in `width` given
     directly: its one line, less the trailing spaces (none where it is blank), as
-    `TextWrapper.wrap` makes it (no tab or other whitespace to convert, nothing to break)."""
+    `TextWrapper.wrap` makes it (no tab or other whitespace to convert, nothing to break). Any
+    other line is wrapped by TextWrapper once: a long source line comes back for each of its
+    nodes."""
+
+    def __init__(self, width: int):
+        super().__init__(width=width)
+        self._wrapped: dict[str, tuple[str, ...]] = {}
 
     def wrap(self, text: str) -> list[str]:
         if len(text) <= self.width and text.isascii() and text.isprintable():
             line = text.rstrip(" ")
             return [line] if line else []
-        return super().wrap(text)
+        lines = self._wrapped.get(text)
+        if lines is None:
+            lines = self._wrapped[text] = tuple(super().wrap(text))
+        return list(lines)
 
 
 @functools.cache
