@@ -124,7 +124,7 @@ class ContactLayer:
         # energy that the obstacles' work cannot count: the bodies they touch keep the budget of
         # their free motion.
         soft = c.soft.nonzero()[0]
-        jawed = (~c.soft & (c.other >= self.stage.first_jaw)).nonzero()[0]
+        jawed = self.stage.on_jaws(c).nonzero()[0]
         trading = set(c.body[soft].tolist()) | set(c.other[soft].tolist()) | set(c.body[jawed].tolist())
         for i, body in enumerate(sim.bodies.values()):     # the step ends after the correction
             budget = getattr(body.stepper, "budget", None)

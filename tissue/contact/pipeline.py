@@ -174,8 +174,8 @@ class ContactStage:
                 raise TissueError(f"contact: obstacles must be RigidObstacle, got {type(o).__name__}")
         self.instruments = list(instruments)
         self.jaws = [jaw for instrument in self.instruments for jaw in instrument.jaws]
-        # Jaw j is obstacle first_jaw + j, and body len(bodies) + j of the rows.
-        self.first_jaw = len(self.obstacles)
+        # Jaw j is obstacle _first_jaw + j, and body len(bodies) + j of the rows.
+        self._first_jaw = len(self.obstacles)
         self.obstacles += [jaw.obstacle for jaw in self.jaws]
         self.attachments = list(attachments)
         if settings.delassus == "factored" and self.attachments:
@@ -267,6 +267,10 @@ class ContactStage:
         """The friction coefficients as given (any of them may be set anew between steps): the
         default, the bodies' and the obstacles'."""
         return (self.settings.friction, tuple(b.friction for b in self.bodies), tuple(o.friction for o in self.obstacles))
+
+    def on_jaws(self, contacts: Contacts) -> np.ndarray:
+        """(k,) bool: which of `contacts` touch an instrument's jaw (the obstacles after the scene's)."""
+        return ~contacts.soft & (contacts.other >= self._first_jaw)
 
     def _friction(self, contacts: Contacts, given: tuple | None = None) -> np.ndarray:
         """μ per contact: soft–soft the smaller of the two bodies' (the default unless both say);
@@ -444,7 +448,7 @@ class ContactStage:
         """The rows with their blocks on the jaws they touch: minus the row directions (a jaw's
         point moving along d closes the gap), at the jaw's one node (a frictionless contact's
         tangent rows stay empty, as on the soft side)."""
-        jaw = np.where(contacts.soft, -1, contacts.other - self.first_jaw)
+        jaw = np.where(contacts.soft, -1, contacts.other - self._first_jaw)
         on = (jaw >= 0).nonzero()[0]
         if not len(on):
             return rows

@@ -174,7 +174,7 @@ class HapticsStage:
         c = last.contacts
         lam = last.contact_impulses / stage.dt
         pressed = lam[:, 0] > 0
-        on_jaw = ~c.soft & (c.other >= stage.first_jaw)
+        on_jaw = stage.on_jaws(c)
         mu = stage._friction(c)
         sliding = pressed & on_jaw & (np.linalg.norm(lam[:, 1:], axis=1) >= SLIDING * mu * lam[:, 0]) & (mu > 0)
         forces = last.contact_forces
