@@ -268,7 +268,7 @@ def run_cell(cell: dict) -> dict:
 # ---- the sweep -------------------------------------------------------------------------------
 
 def cells(quick: bool, arch: str) -> list[dict]:
-    from tissue.solver.implicit_euler import PRECONDITIONERS
+    from tissue.solver.parameters import PRECONDITIONERS
 
     out = [dict(section="direct", rotation=r) for r in ("large", "polar")]
     for pre in PRECONDITIONERS:

@@ -74,7 +74,7 @@ def curve(solver, x, v, dv_ref, cap: int, repeats: int = 3) -> dict:
     """Wall time from the step's start and error of dv after k = 0, 1, ... CG iterations."""
     import taichi as ti
 
-    from tissue.solver.implicit_euler import BEGIN_PARALLEL, ITERATE_PARALLEL
+    from tissue.solver.step_kernels import BEGIN_PARALLEL, ITERATE_PARALLEL
 
     norm = np.linalg.norm(dv_ref)
     samples, errors = [], []

@@ -240,7 +240,7 @@ def test_a_cut_off_piece_falls_freely(backend):
     held half stays where it hung."""
     from tissue.fem import CorotationalFEM, Material
     from tissue.solver import ImplicitEuler
-    from tissue.solver.implicit_euler import CGSettings
+    from tissue.solver.parameters import CGSettings
 
     mesh = box(size=SIZE, cells=(5, 2, 2))
     fem = CorotationalFEM(mesh, Material(young=1e5, poisson=0.35, density=1000.0), rotation="polar")

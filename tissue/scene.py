@@ -28,7 +28,7 @@ from .errors import TissueError
 from .mesh.closed_surface import SURFACE_SUFFIXES
 from .mesh.organs import ORGANS as ORGAN_SURFACES
 from .options import Options, apply_overrides, require, suggestion, validate
-from .solver.implicit_euler import CGSettings, StepParameters
+from .solver.parameters import CGSettings, StepParameters
 
 __all__ = ["Fixed", "SoftBody", "Solver", "Render", "Scene", "validate", "apply_overrides", "mesh_kind"]
 

@@ -116,7 +116,7 @@ def _polar_rotations(m: MODEL, x: ti.types.ndarray(), v: ti.types.ndarray(), h: 
         out[e] = element_rotation(m, e, start, "polar", tol)
 
 
-# A launch's arrays, in one flat argpack (tissue.solver.implicit_euler says why flat): the nodal
+# A launch's arrays, in one flat argpack (tissue.solver.step_kernels says why flat): the nodal
 # rotations R, A₀⁻¹ (C0), the touched nodes' blocks of rows in C0 (rows), Hr, the JDS (jds:
 # JaggedDiagonal.packed; value) and the step's scalars in two small arrays, `sizes` (SIZES) and
 # `reals` (REALS); for the rotations and W (WARP), the FEM's element rotations and gather index and

@@ -29,7 +29,7 @@ from .model import BodyModel, Edit, real_numpy
 PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))   # an element's corner pairs a < b
 
 # block_count[0]: blocks in use. Members a layout does not use hold one entry. A step's argpack
-# (tissue.solver.implicit_euler.STEP) holds these members too.
+# (tissue.solver.step_kernels.STEP) holds these members too.
 BLOCKS = ti.types.argpack(block_count=ti.types.ndarray(), gradients=ti.types.ndarray(), rotated=ti.types.ndarray(),
                           slots=ti.types.ndarray(), index=ti.types.ndarray(), offsets=ti.types.ndarray(),
                           blocks=ti.types.ndarray(), diagonal=ti.types.ndarray(), product=ti.types.ndarray())

@@ -1,5 +1,6 @@
 """Time integration: implicit Euler with matrix-free CG, and the assembled scipy reference."""
 
-from .implicit_euler import CGSettings, ImplicitEuler
+from .implicit_euler import ImplicitEuler
+from .parameters import CGSettings
 
 __all__ = ["CGSettings", "ImplicitEuler"]

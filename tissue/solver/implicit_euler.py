@@ -7,151 +7,39 @@ the matrix is A = (1 + h α_M) M + (h α_K + h²) Σ R Kₑ Rᵀ. CG needs only 
 co-rotated blocks assembled once per step ("assembled", tissue.fem.assembled), or element by
 element in every iteration as the paper does ("matrix_free", tissue.fem.corotational).
 
-Launches are what cost on small meshes (tens of µs each from Python), so a whole step runs in very
-few kernels: "serial" runs the whole step, CG loop included, in one single-threaded kernel (best
-for the paper's real-time meshes), "parallel" unrolls `unroll` CG iterations per kernel, each
-iteration five parallel loops that exit early once converged. Dot products are blocked partial
-sums added in a fixed order, so results are bit-identical run to run.
-
-The kernels are module-level and take one flat argpack (STEP) of the model's arrays
-(tissue.fem.model), the FEM's work, this solver's state and the step parameters (an array read at
-every launch), plus a `Scheme` of the few compile-time choices: one compilation per scheme serves
-every body, mesh size and parameter value.
+This module holds the solver a body owns: its storage, the numpy boundary and the step's report.
+The step's parameters (tissue.solver.parameters), its state's layout on the device
+(tissue.solver.state), its matrix (tissue.solver.operator) and its kernels
+(tissue.solver.step_kernels) are modules of their own.
 """
 
-import functools
 import math
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import taichi as ti
 
-from .. import backend, compilation
+from .. import backend
 from ..errors import TissueError
-from ..fem import CorotationalFEM, assembled, corotational
-from ..fem.assembled import BLOCKS, BlockRows, SymmetricBlocks
-from ..fem.corotational import FEM_WORK
-from ..fem.model import DETACHED, MODEL, real_numpy
+from ..fem import CorotationalFEM
+from ..fem.assembled import BlockRows, SymmetricBlocks
+from ..fem.model import real_numpy
 from ..fem.regime import check_regime
 from ..launch import host_view, kept_pack, replayed
 from ..stats import Stats
-from . import multigrid
 from .multigrid import MULTIGRID_MEMBERS, BlockJacobi, Multigrid
+from .parameters import PARAMETERS, CGSettings, StepParameters
 from .reference import rest_matrix
+from .state import BLOCK, BREAKDOWN, ITERATION, NONFINITE, RES2, RHS2, SCALARS
+from .step_kernels import (BEGIN_PARALLEL, BLOCK_MEMBERS, END_PARALLEL, ITERATE_PARALLEL, PLAIN_SERIAL, PLAIN_STEP,
+                           SERIAL, STEP, Scheme, unused)
 
-PRECONDITIONERS = ("none", "jacobi", "multigrid")
 EXECUTIONS = ("auto", "serial", "parallel")
 OPERATORS = ("assembled", "matrix_free")
 # On the CPU a single thread beats two below this many elements: each parallel loop costs a
 # thread-pool dispatch, and a CG iteration has five of them (bench/deformation.py measures it).
 SERIAL_BELOW_ELEMENTS = 30_000
-
-# Scalar slots of the CG state kept on the device (LAST_DT: the dt of the last solve, its dv's).
-DELTA, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE, LAST_DT = range(12)
-
-
-@dataclass(frozen=True)
-class CGSettings:
-    """Conjugate-gradient stopping rule and preconditioner (SOFA's CGLinearSolver defaults)."""
-
-    max_iterations: int = 25
-    tolerance: float = 1e-9     # stop when ‖r‖ ≤ tolerance ‖b‖, whatever the preconditioner
-    threshold: float = 1e-30    # stop when |pᵀAp| falls under it
-    preconditioner: str = "none"
-    # "multigrid" (tissue.solver.multigrid): coarse grid size (None: 2.5 √nodes) and
-    # the degree of its Chebyshev smoother (products with A per smoothing).
-    coarse_nodes: int | None = None
-    smoothing_degree: int = 2
-    # Start from the last solve's dv scaled to this dt (the same acceleration) instead of zero; the
-    # stopping rule is the same. A body at rest or in steady motion starts near its solution.
-    warm_start: bool = False
-
-    def __post_init__(self):
-        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
-            raise TissueError(f"max_iterations: must be an integer ≥ 1, got {self.max_iterations!r}")
-        if not self.tolerance >= 0:
-            raise TissueError(f"tolerance: must be ≥ 0, got {self.tolerance!r}")
-        if not self.threshold >= 0:
-            raise TissueError(f"threshold: must be ≥ 0, got {self.threshold!r}")
-        if self.preconditioner not in PRECONDITIONERS:
-            raise TissueError(f"preconditioner: unknown {self.preconditioner!r}; expected one of {PRECONDITIONERS}")
-        if self.coarse_nodes is not None and not (isinstance(self.coarse_nodes, int) and self.coarse_nodes >= 8):
-            raise TissueError(f"coarse_nodes: must be an integer ≥ 8 or None (automatic), got {self.coarse_nodes!r}")
-        if not (isinstance(self.smoothing_degree, int) and self.smoothing_degree >= 1):
-            raise TissueError(f"smoothing_degree: must be an integer ≥ 1, got {self.smoothing_degree!r}")
-        if not isinstance(self.warm_start, bool):
-            raise TissueError(f"warm_start: must be True or False, got {self.warm_start!r}")
-
-
-@dataclass(frozen=True)
-class Scheme:
-    """What a step's kernels are compiled for: a handful of choices, each a few variants, so a
-    process compiles at most one kernel per combination it uses, whatever the meshes, sizes and
-    parameters (a template argument of the kernels, keyed by value)."""
-
-    rotation: str
-    accumulation: str
-    operator: str            # "assembled" or "matrix_free"
-    layout: str              # the assembled blocks: "symmetric" (serial) or "rows" (parallel)
-    preconditioner: str      # "multigrid" for block-Jacobi too, where it runs as its degenerate case
-    smoothing_degree: int    # of the multigrid's Chebyshev smoother, where compiled in (parallel; 0 else)
-    unroll: int              # CG iterations per launch on the parallel path
-
-    @property
-    def serial(self) -> bool:
-        """One CPU thread runs the whole step (the symmetric layout's assembly would race otherwise)."""
-        return self.layout == "symmetric"
-
-
-# The step's state on the device: nodal vectors, the block-diagonal inverse (preconditioners),
-# the CG scalars (slots above), blocked partial sums, and the step's parameters (slots below).
-STATE_MEMBERS = ("x", "v", "dv", "r", "z", "p", "q", "external", "block_inverse", "scalars", "partial", "parameters")
-DT, MASS_DAMPING, STIFFNESS_DAMPING, GX, GY, GZ, TOLERANCE, THRESHOLD, MAX_ITERATIONS, WARM_START = range(10)
-# A step's kernels take one flat argpack: the members of the model (MODEL), the FEM's work
-# (FEM_WORK), the state, the assembled blocks (BLOCKS) and the multigrid. Flat, because a kernel
-# reloads an ndarray's address after every store to an ndarray (they might alias), one load per
-# level of nesting: measured here, a nested pack cost ~30 % more than a flat one in such loops.
-STEP_MEMBERS = (*MODEL.members, *FEM_WORK.members, *STATE_MEMBERS, *BLOCKS.members, *MULTIGRID_MEMBERS)
-STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS})
-# The same less the multigrid's members, for the serial step of the other schemes: Taichi's CPU
-# launcher sets every ndarray of a pack at each launch, replayed or not (~0.35 µs each).
-PLAIN_STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS
-                                 if name not in MULTIGRID_MEMBERS})
-BLOCK_MEMBERS = tuple(BLOCKS.members)
-# Nodes per block of the partial sums (dot products summed in a fixed order: bit-identical reruns).
-BLOCK = 1024
-
-
-@dataclass(frozen=True)
-class StepParameters:
-    """The parameters of a step, read by the kernels at every launch: changing them on a live
-    solver takes effect at the next step and compiles nothing."""
-
-    dt: float
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
-    rayleigh_mass: float = 0.0
-    rayleigh_stiffness: float = 0.0
-    cg: CGSettings = CGSettings()
-
-    def __post_init__(self):
-        dt = self.dt
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-            raise TissueError(f"dt: the time step must be a finite number > 0 s, got {dt!r}")
-        for name in ("rayleigh_mass", "rayleigh_stiffness"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise TissueError(f"{name}: must be a finite number ≥ 0, got {value!r}")
-        if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
-            raise TissueError(f"gravity: expected 3 finite numbers, got {self.gravity!r}")
-
-    def array(self) -> np.ndarray:
-        values = np.zeros(10)
-        values[[DT, MASS_DAMPING, STIFFNESS_DAMPING]] = self.dt, self.rayleigh_mass, self.rayleigh_stiffness
-        values[[GX, GY, GZ]] = self.gravity
-        values[[TOLERANCE, THRESHOLD, MAX_ITERATIONS]] = self.cg.tolerance, self.cg.threshold, self.cg.max_iterations
-        values[WARM_START] = self.cg.warm_start
-        return values
 
 
 class ImplicitEuler:
@@ -294,9 +182,9 @@ class ImplicitEuler:
         old = getattr(self, "arrays", None)
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
-        arrays["scalars"] = ti.ndarray(real, 12)
+        arrays["scalars"] = ti.ndarray(real, SCALARS)
         arrays["partial"] = ti.ndarray(real, (3, (n + BLOCK - 1) // BLOCK))
-        arrays["parameters"] = ti.ndarray(real, 10)
+        arrays["parameters"] = ti.ndarray(real, PARAMETERS)
         for name in ("x", "v", "external"):
             values = np.zeros((n, 3), dtype=real_numpy())
             if old is not None:
@@ -324,9 +212,9 @@ class ImplicitEuler:
         only when one of its arrays was re-allocated."""
         self._resize()
         arrays = {**self.model.arrays, **self.fem.work_arrays, **self.arrays,
-                  **(self.matrix.arrays if self.matrix is not None else _unused(BLOCK_MEMBERS))}
+                  **(self.matrix.arrays if self.matrix is not None else unused(BLOCK_MEMBERS))}
         if kind is STEP:
-            arrays.update(self.multigrid.arrays if self.multigrid is not None else _unused(MULTIGRID_MEMBERS))
+            arrays.update(self.multigrid.arrays if self.multigrid is not None else unused(MULTIGRID_MEMBERS))
         kept = self._packs[kind] = kept_pack(self._packs.get(kind), kind, arrays)
         return kept[0]
 
@@ -559,415 +447,3 @@ def _write_nodes(x: ti.types.ndarray(), v: ti.types.ndarray(), ids: ti.types.nda
 WRITE_NODES = replayed(_write_nodes)
 
 
-@functools.cache
-def _unused(members: tuple) -> dict:
-    """Arrays for the members a scheme does not read (one entry each; one dict per member list)."""
-    return {name: _one_entry() for name in members}
-
-
-@functools.cache
-def _one_entry():
-    return ti.ndarray(ti.i32, 1)
-
-
-# ---- kernels: a step is begin, CG iterations, end, over the launch's argpack `k` and scheme `o` ----
-
-
-@ti.func
-def _sum_partials(k: ti.template(), slot):
-    s = 0.0
-    for b in range((k.counts[0] + BLOCK - 1) // BLOCK):
-        s += k.partial[slot, b]
-    return s
-
-
-@ti.func
-def _blocks(k: ti.template()):
-    return (k.counts[0] + BLOCK - 1) // BLOCK
-
-
-@ti.func
-def _block_nodes(k: ti.template(), b):
-    return b * BLOCK, ti.min((b + 1) * BLOCK, k.counts[0])
-
-
-@ti.func
-def _preconditioned(k: ti.template(), o: ti.template(), v, r):
-    """z = P⁻¹ r node by node; multigrid couples nodes, so it runs after (_precondition_coupled)."""
-    z = r
-    if ti.static(o.preconditioner == "jacobi"):
-        z = k.block_inverse[v] @ r
-    return z
-
-
-@ti.func
-def multiply(k: ti.template(), o: ti.template(), src: ti.template()):
-    """The pass that a product needs before `_stiffness_times(v, src)` can read node v."""
-    if ti.static(o.operator == "matrix_free"):
-        corotational.scatter(k, k, "stiffness", src, o.accumulation, o.rotation)
-    elif ti.static(o.layout == "symmetric"):
-        assembled.symmetric_multiply(k, k, src)
-
-
-@ti.func
-def _stiffness_times(k: ti.template(), o: ti.template(), v, src: ti.template()):
-    """(Σ R Kₑ Rᵀ src) at node v, after `multiply(src)`."""
-    Kp = ti.Vector([0.0, 0.0, 0.0])
-    if ti.static(o.operator == "matrix_free"):
-        Kp = -corotational.gathered(k, k, v, o.accumulation)
-    elif ti.static(o.layout == "symmetric"):
-        Kp = k.product[v]
-    else:
-        Kp = assembled.rows_product(k, v, src)
-    return Kp
-
-
-@ti.func
-def factors(k: ti.template()):
-    """The coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ."""
-    h = k.parameters[DT]
-    return 1.0 + h * k.parameters[MASS_DAMPING], h * k.parameters[STIFFNESS_DAMPING] + h * h
-
-
-@ti.func
-def operator_row(k: ti.template(), o: ti.template(), v, src: ti.template(), mass_factor, stiffness_factor):
-    """(A src) at node v, filtered (zero at held and detached nodes), after `multiply(src)`."""
-    qv = mass_factor * k.mass[v] * src[v] + stiffness_factor * _stiffness_times(k, o, v, src)
-    if k.held[v] != 0:
-        qv = ti.Vector([0.0, 0.0, 0.0])
-    return qv
-
-
-@ti.func
-def _stiffness_diagonal(k: ti.template(), o: ti.template(), v):
-    K = ti.Matrix.zero(float, 3, 3)
-    if ti.static(o.operator == "matrix_free"):
-        K = corotational.stiffness_diagonal(k, k, v, o.rotation)
-    elif ti.static(o.layout == "symmetric"):
-        K = k.diagonal[v]
-    else:
-        K = k.blocks[k.diagonal[v]]
-    return K
-
-
-@ti.func
-def _precondition_coupled(k: ti.template(), o: ti.template(), first):
-    """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first, a value known at
-    compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value."""
-    if ti.static(o.preconditioner == "multigrid"):
-        for _ in range(1):
-            if not first:
-                _stop_before_preconditioning(k)
-        multigrid.apply(k, o, k.r, k.z)
-        for b in range(_blocks(k)):
-            rz = 0.0
-            if k.scalars[DONE] == 0:
-                begin, end = _block_nodes(k, b)
-                for v in range(begin, end):
-                    if first:
-                        k.p[v] = k.z[v]
-                    rz += k.r[v].dot(k.z[v])
-            k.partial[0, b] = rz
-
-
-@ti.func
-def _stop_before_preconditioning(k: ti.template()):
-    """The stopping rule of _next_direction, taken where _descend left ‖r‖² (partial[1]), so that
-    the last iteration's V-cycle, whose z nothing reads, is skipped (one thread)."""
-    if k.scalars[DONE] == 0:
-        if _stops(k, k.scalars[ITERATION] + 1):
-            k.scalars[ITERATION] = k.scalars[ITERATION] + 1
-            k.scalars[DONE] = 1
-
-
-@ti.func
-def _stops(k: ti.template(), iterations):
-    """CG's stopping rule: ‖r‖² (partial[1]) ≤ tol² ‖b‖², or `iterations` at the cap."""
-    tol = k.parameters[TOLERANCE]
-    return _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] or iterations >= k.parameters[MAX_ITERATIONS]
-
-
-@ti.func
-def _begin(k: ti.template(), o: ti.template(), tol):
-    """Rotations, the assembled matrix, forces, the right-hand side b and CG's start: dv, r = b − A dv,
-    and z = p = P⁻¹ r node by node (the coupled preconditioner and the CG's scalars follow:
-    _start_cg)."""
-    h = k.parameters[DT]
-    mass_factor, stiffness_factor = factors(k)
-    g = ti.Vector([k.parameters[GX], k.parameters[GY], k.parameters[GZ]])
-    corotational.update_rotations(k, k, k.x, o.rotation, tol)
-    if ti.static(o.operator == "assembled"):
-        if ti.static(o.layout == "symmetric"):
-            assembled.symmetric_assemble(k, k, k, o.rotation)
-        else:
-            assembled.rows_assemble(k, k, k, o.rotation)
-    if ti.static(o.preconditioner == "multigrid"):
-        multigrid.update_rotations(k, tol)
-        for _ in range(1):  # the V-cycle's loops run while DONE is 0
-            k.scalars[DONE] = 0
-    corotational.scatter(k, k, "force", k.x, o.accumulation, o.rotation)
-    for v in range(k.counts[0]):  # the forces f(x, v), kept in r until the right-hand side is complete
-        mv = k.mass[v]
-        k.r[v] = corotational.gathered(k, k, v, o.accumulation) + mv * g + k.external[v] \
-            - k.parameters[MASS_DAMPING] * mv * k.v[v]
-    multiply(k, o, k.v)
-    for b in range(_blocks(k)):
-        rz, rr = 0.0, 0.0
-        begin, end = _block_nodes(k, b)
-        for v in range(begin, end):
-            rhs = h * k.r[v] - stiffness_factor * _stiffness_times(k, o, v, k.v)
-            if k.held[v] != 0:
-                rhs = ti.Vector([0.0, 0.0, 0.0])
-            if ti.static(o.preconditioner != "none"):
-                A = mass_factor * k.mass[v] * ti.Matrix.identity(float, 3) + stiffness_factor * _stiffness_diagonal(k, o, v)
-                if k.held[v] == DETACHED:   # no element: A is zero there, and so is r
-                    A = ti.Matrix.identity(float, 3)
-                k.block_inverse[v] = A.inverse()
-            k.dv[v] = _guess(k, v)
-            if k.parameters[WARM_START] != 0:   # CG starts from b − A dv: _warm_start preconditions it
-                k.r[v] = rhs
-                rr += rhs.dot(rhs)
-            else:
-                products = _set_residual(k, o, v, rhs)
-                rz += products[0]
-                rr += products[1]
-        k.partial[0, b] = rz
-        k.partial[1, b] = rr
-        k.partial[2, b] = rr     # ‖b‖²: the stopping rule's scale
-    _warm_start(k, o)
-
-
-@ti.func
-def _set_residual(k: ti.template(), o: ti.template(), v, r):
-    """CG's start at node v from its residual r: r, z = P⁻¹ r and p = z kept; (rᵀz, rᵀr) returned."""
-    z = _preconditioned(k, o, v, r)
-    k.r[v] = r
-    k.z[v] = z
-    k.p[v] = z
-    return ti.Vector([r.dot(z), r.dot(r)])
-
-
-@ti.func
-def _guess(k: ti.template(), v):
-    """CG's start at node v: zero, or warm, the last solve's dv scaled to this dt (zero at held
-    nodes, and where it is not finite)."""
-    guess = ti.Vector([0.0, 0.0, 0.0])
-    if k.parameters[WARM_START] != 0 and k.scalars[LAST_DT] > 0 and k.held[v] == 0:
-        guess = (k.parameters[DT] / k.scalars[LAST_DT]) * k.dv[v]
-        if not (guess.norm_sqr() < 1e300):
-            guess = ti.Vector([0.0, 0.0, 0.0])
-    return guess
-
-
-@ti.func
-def _warm_start(k: ti.template(), o: ti.template()):
-    """Warm: r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
-    if ti.static(o.operator == "matrix_free"):
-        for e in range(k.counts[1]):
-            if k.parameters[WARM_START] != 0:
-                corotational.scatter_element(k, k, "stiffness", e, k.dv, o.accumulation, o.rotation)
-    elif ti.static(o.layout == "symmetric"):   # one thread runs the step: a runtime branch is free
-        if k.parameters[WARM_START] != 0:
-            assembled.symmetric_multiply(k, k, k.dv)
-    mass_factor, stiffness_factor = factors(k)
-    for b in range(_blocks(k)):
-        if k.parameters[WARM_START] != 0:
-            rz, rr = 0.0, 0.0
-            begin, end = _block_nodes(k, b)
-            for v in range(begin, end):
-                products = _set_residual(k, o, v, k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor))
-                rz += products[0]
-                rr += products[1]
-            k.partial[0, b] = rz
-            k.partial[1, b] = rr
-
-
-@ti.func
-def _start_cg(k: ti.template()):
-    """The CG's scalars once z = P⁻¹ r is complete."""
-    for _ in range(1):
-        delta = _sum_partials(k, 0)
-        k.scalars[DELTA] = delta
-        k.scalars[RHS2] = _sum_partials(k, 2)
-        k.scalars[ITERATION] = 0
-        k.scalars[BREAKDOWN] = 0
-        tol = k.parameters[TOLERANCE]
-        k.scalars[DONE] = 1 if delta <= 0 or _sum_partials(k, 1) <= tol * tol * k.scalars[RHS2] else 0
-        k.scalars[LAST_DT] = k.parameters[DT]
-
-
-@ti.func
-def _descend(k: ti.template(), o: ti.template()):
-    """q = A p, α, dv += α p, r -= α q, and z = P⁻¹ r node by node (the coupled preconditioner and
-    the next direction follow: _next_direction)."""
-    if ti.static(o.operator == "matrix_free"):
-        for e in range(k.counts[1]):  # element stage, skipped once converged
-            if k.scalars[DONE] == 0:
-                corotational.scatter_element(k, k, "stiffness", e, k.p, o.accumulation, o.rotation)
-    elif ti.static(o.layout == "symmetric"):
-        assembled.symmetric_multiply(k, k, k.p)  # serial only (rows multiply on demand)
-    mass_factor, stiffness_factor = factors(k)
-    for b in range(_blocks(k)):  # q = A p (filtered), and pᵀq
-        pq = 0.0
-        if k.scalars[DONE] == 0:
-            begin, end = _block_nodes(k, b)
-            for v in range(begin, end):
-                qv = operator_row(k, o, v, k.p, mass_factor, stiffness_factor)
-                k.q[v] = qv
-                pq += k.p[v].dot(qv)
-        k.partial[0, b] = pq
-    for _ in range(1):
-        if k.scalars[DONE] == 0:
-            pq = _sum_partials(k, 0)
-            k.scalars[PQ] = pq
-            if not (ti.abs(pq) > k.parameters[THRESHOLD]) or not (pq == pq):
-                k.scalars[DONE] = 1
-                if pq < 0 or not (pq == pq):
-                    k.scalars[BREAKDOWN] = 1
-            else:
-                k.scalars[ALPHA] = k.scalars[DELTA] / pq
-    for b in range(_blocks(k)):  # dv += α p, r -= α q, z = P⁻¹ r, rᵀz and rᵀr
-        rz, rr = 0.0, 0.0
-        if k.scalars[DONE] == 0:
-            alpha = k.scalars[ALPHA]
-            begin, end = _block_nodes(k, b)
-            for v in range(begin, end):
-                k.dv[v] = k.dv[v] + alpha * k.p[v]  # rows are owned: no atomics
-                r = k.r[v] - alpha * k.q[v]
-                k.r[v] = r
-                if ti.static(o.preconditioner != "multigrid"):   # (multigrid: _precondition_coupled)
-                    z = _preconditioned(k, o, v, r)
-                    k.z[v] = z
-                    rz += r.dot(z)
-                rr += r.dot(r)
-        k.partial[0, b] = rz
-        k.partial[1, b] = rr
-
-
-@ti.func
-def _next_direction(k: ti.template()):
-    """β, the stopping rule, and p = z + β p, once z = P⁻¹ r is complete."""
-    for _ in range(1):
-        if k.scalars[DONE] == 0:
-            delta = _sum_partials(k, 0)
-            k.scalars[DELTA_OLD] = k.scalars[DELTA]
-            k.scalars[DELTA] = delta
-            k.scalars[ITERATION] = k.scalars[ITERATION] + 1
-            k.scalars[BETA] = delta / k.scalars[DELTA_OLD]
-            if _stops(k, k.scalars[ITERATION]):
-                k.scalars[DONE] = 1
-    for v in range(k.counts[0]):
-        if k.scalars[DONE] == 0:
-            k.p[v] = k.z[v] + k.scalars[BETA] * k.p[v]
-
-
-@ti.func
-def _iteration(k: ti.template(), o: ti.template()):
-    _descend(k, o)
-    _precondition_coupled(k, o, False)
-    _next_direction(k)
-
-
-@ti.func
-def _solve_serial(k: ti.template(), o: ti.template()):
-    """CG from the right-hand side of _begin to convergence, in one thread: a runtime loop whose
-    first pass starts the CG and the others iterate, so that the preconditioner (a whole V-cycle
-    for multigrid) is inlined once. The size of the kernel is what its compilation costs in every
-    process (Taichi's front end, LLVM's machine code)."""
-    first = 1
-    while first == 1 or k.scalars[DONE] == 0:
-        if first == 0:
-            _descend(k, o)
-        _precondition_coupled(k, o, first == 1)
-        if first == 1:
-            _start_cg(k)
-        else:
-            _next_direction(k)
-        first = 0
-
-
-@ti.func
-def _end(k: ti.template()):
-    h = k.parameters[DT]
-    for b in range(_blocks(k)):
-        rr, bad = 0.0, 0.0
-        begin, end = _block_nodes(k, b)
-        for v in range(begin, end):
-            vel = k.v[v] + k.dv[v]
-            if k.held[v] != 0:
-                vel = ti.Vector([0.0, 0.0, 0.0])
-            if not (vel.norm_sqr() < 1e300):  # NaN or inf
-                bad += 1.0
-            k.v[v] = vel
-            k.x[v] = k.x[v] + h * vel
-            rr += k.r[v].dot(k.r[v])
-        k.partial[0, b] = rr
-        k.partial[1, b] = bad
-    for _ in range(1):
-        k.scalars[RES2] = _sum_partials(k, 0)
-        k.scalars[NONFINITE] = _sum_partials(k, 1)
-
-
-def _multigrid(k, o, *_) -> bool:
-    """A step kernel's instance with the multigrid V-cycle inlined: where Taichi's IR passes, chosen
-    per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (the
-    serial step: 10 -> 153 CPU s of compiling, for a step a few % faster; the parallel kernels:
-    2.5x, for no faster step) and seconds on the other schemes' (bench/results/compile_options_liver19k.json)."""
-    return o.preconditioner == "multigrid"
-
-
-@compilation.without_ir_passes(_multigrid)
-@ti.kernel
-def _begin_parallel(k: STEP, o: ti.template(), tol: ti.f64):
-    _begin(k, o, tol)
-    _precondition_coupled(k, o, True)
-    _start_cg(k)
-
-
-@compilation.without_ir_passes(_multigrid)
-@ti.kernel
-def _iterate_parallel(k: STEP, o: ti.template()):
-    for _ in ti.static(range(o.unroll)):
-        _iteration(k, o)
-
-
-@ti.kernel
-def _end_parallel(k: STEP, o: ti.template()):
-    _end(k)
-
-
-def _serial_kernel(pack):
-    """The serial step's kernel over argpacks of `pack` (STEP; PLAIN_STEP for the schemes that read
-    no multigrid)."""
-    @compilation.without_ir_passes(_multigrid)
-    @ti.kernel
-    def _serial(k: pack, o: ti.template(), part: ti.template(), tol: ti.f64):
-        """The whole step ("step"), or its "begin" (up to the right-hand side) or "solve" (the CG)
-        part, in one CPU thread. The report stays in the arrays (ImplicitEuler.report)."""
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            if ti.static(part != "solve"):
-                _begin(k, o, tol)
-            if ti.static(part != "begin"):
-                _solve_serial(k, o)
-                _end(k)
-
-    return _serial
-
-
-SERIAL, PLAIN_SERIAL, BEGIN_PARALLEL, ITERATE_PARALLEL, END_PARALLEL = (
-    replayed(kernel) for kernel in (_serial_kernel(STEP), _serial_kernel(PLAIN_STEP), _begin_parallel,
-                                    _iterate_parallel, _end_parallel))
-
-
-@ti.kernel
-def apply_preconditioner(k: STEP, o: ti.template(), r: ti.types.ndarray(), z: ti.types.ndarray()):
-    """z = B r alone (tests): the multigrid V-cycle with the matrix of the last step."""
-    for _ in range(1):
-        k.scalars[DONE] = 0
-    if ti.static(o.serial):   # a one-thread scheme's V-cycle: serial loops
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            multigrid.apply(k, o, r, z)
-    else:
-        multigrid.apply(k, o, r, z)

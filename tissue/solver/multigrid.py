@@ -34,7 +34,8 @@ from ..fem.corotational import nodal_rotation
 from ..fem.model import real_numpy
 from ..mesh import box
 from ..mesh.embedding import EmbeddedSurface
-from . import implicit_euler as ie
+from .operator import factors, multiply, operator_row
+from .state import DONE
 
 # Chebyshev targets [λ/15, λ]: the part of the spectrum the coarse space misses. Against [λ/30, λ],
 # 2-13 % fewer CG iterations per scene at the same cost each (docs/performance.md, branch free2).
@@ -53,7 +54,7 @@ def coarse_grid(points: np.ndarray, target_nodes: int):
         spacing *= 1.05
 
 
-# The multigrid's members of a step's argpack (tissue.solver.implicit_euler.STEP): coarse_count
+# The multigrid's members of a step's argpack (tissue.solver.step_kernels.STEP): coarse_count
 # [coarse nodes]; coefficients: θ, then (ρₖρₖ₋₁, 2ρₖ/δ) per Chebyshev step.
 MULTIGRID_MEMBERS = ("coarse_count", "nodes", "weights", "fine_offsets", "fine_entries", "coarse_inverse", "nodal_R",
                      "res", "d", "rc", "ec", "coefficients")
@@ -186,7 +187,8 @@ class Multigrid:
         padded = np.zeros((src.shape[0], 3), dtype=real_numpy())
         padded[:n] = r
         src.from_numpy(padded)
-        ie.apply_preconditioner(self.solver._step_pack(), self.solver.scheme, src, dst)
+        from .step_kernels import apply_preconditioner   # (it imports this module)
+        apply_preconditioner(self.solver._step_pack(), self.solver.scheme, src, dst)
         return dst.to_numpy()[:n].astype(np.float64)
 
 
@@ -250,16 +252,16 @@ def _coarse(k: ti.template()):
 
 @ti.func
 def _running(k: ti.template()):
-    return k.scalars[ie.DONE] == 0
+    return k.scalars[DONE] == 0
 
 
 @ti.func
 def _residual(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
-    ie.multiply(k, o, z)
-    mass_factor, stiffness_factor = ie.factors(k)
+    multiply(k, o, z)
+    mass_factor, stiffness_factor = factors(k)
     for v in range(k.counts[0]):  # res = r - A z
         if _running(k):
-            k.res[v] = r[v] - ie.operator_row(k, o, v, z, mass_factor, stiffness_factor)
+            k.res[v] = r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor)
 
 
 @ti.func
@@ -285,11 +287,11 @@ def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template
 
 @ti.func
 def _chebyshev_step(k: ti.template(), o: ti.template(), z: ti.template(), step):
-    ie.multiply(k, o, k.d)
-    mass_factor, stiffness_factor = ie.factors(k)
+    multiply(k, o, k.d)
+    mass_factor, stiffness_factor = factors(k)
     for v in range(k.counts[0]):
         if _running(k):
-            k.res[v] = k.res[v] - ie.operator_row(k, o, v, k.d, mass_factor, stiffness_factor)
+            k.res[v] = k.res[v] - operator_row(k, o, v, k.d, mass_factor, stiffness_factor)
     for v in range(k.counts[0]):
         if _running(k):
             d = k.coefficients[1 + 2 * step] * k.d[v] + k.coefficients[2 + 2 * step] * (k.block_inverse[v] @ k.res[v])

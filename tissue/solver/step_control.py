@@ -39,7 +39,8 @@ from ..fem.energy import element_energy, element_energy_at_rotations
 from ..fem.model import real_numpy
 from ..launch import host_view, replayed
 from .energy_budget import EnergyBudget, solve_residual
-from .implicit_euler import GX, GY, GZ, STEP, _begin, _end, _multigrid, _solve_serial
+from .parameters import GX, GY, GZ
+from .step_kernels import STEP, begin, end, inlines_multigrid, solve_serial
 
 TOLERANCE = 1e-3        # of the energy in play (kinetic + elastic), the most a step may gain
 MAX_HALVINGS = 6        # dt / 64 at the finest
@@ -146,19 +147,19 @@ def _energy(k: STEP, w: ENERGY_WORK, rotation: ti.template(), accumulation: ti.t
                     w.stiffness_direction[v] = -corotational.gathered(k, k, v, accumulation)
 
 
-@compilation.without_ir_passes(_multigrid)
+@compilation.without_ir_passes(inlines_multigrid)
 @ti.kernel
 def _checked_serial(k: STEP, o: ti.template(), w: ENERGY_WORK, tol: ti.f64, previous: ti.i32,
                     edited: ti.i32):
-    """The serial step (tissue.solver.implicit_euler._serial) with an evaluation at its start, after
+    """The serial step (tissue.solver.step_kernels._serial) with an evaluation at its start, after
     its rotations, and one at its end (w.totals[AT_START:] and [AT_END:]): the start's state kept in
     slot 1 − previous, the end's in slot `previous`."""
     ti.loop_config(serialize=True)
     for _ in range(1):
-        _begin(k, o, tol)
+        begin(k, o, tol)
         _evaluate_serial(k, w, o.rotation, True, previous, edited, AT_START, tol)
-        _solve_serial(k, o)
-        _end(k)
+        solve_serial(k, o)
+        end(k)
         _evaluate_serial(k, w, o.rotation, False, 1 - previous, 0, AT_END, tol)
 
 
