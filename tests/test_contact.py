@@ -413,7 +413,8 @@ def _surface_contacts(solver, count, seed=0):
 def cantilever(backend):
     """A beam 20 × 4 × 4 cm clamped at x = 0, with its warped and exact compliances (built once:
     compiling a solver's kernels costs seconds)."""
-    from tissue.contact.compliance import ExactCompliance, WarpedCompliance
+    from tissue.contact.compliance import ExactCompliance
+    from tissue.contact.warping import WarpedCompliance
     from tissue.mesh import beam
 
     mesh = beam(0.2, 0.04, 0.04, 8, 2)
@@ -1031,7 +1032,7 @@ def test_kept_rows_reuse_their_gathered_compliance(cantilever):
     """With the rows kept (the same JDS object, a body at rest), W is formed without gathering A₀⁻¹
     among the touched nodes again (the compact copy is still there); after the state turned it
     equals, bit for bit, W formed from a new JDS of the same rows, which gathers it anew."""
-    from tissue.contact.compliance import GATHER
+    from tissue.contact.warping import GATHER
     from tissue.contact.constraints import JaggedDiagonal, build_rows
 
     solver, warped, _ = cantilever

@@ -127,7 +127,7 @@ def test_a_rest_compliance_is_inverted_once_per_rest_matrix_and_held_nodes(cache
     """The warped compliance's dense A₀⁻¹ is cached under a hash of A₀ and the held nodes: a second
     body with the same mesh, material, dt, damping and holds reads it back (no inversion), the
     same bits as the inversion gave; other held nodes make another A₀⁻¹."""
-    from tissue.contact import compliance
+    from tissue.contact import warping
     from tissue.fem import CorotationalFEM, Material
     from tissue.solver import ImplicitEuler
 
@@ -136,19 +136,19 @@ def test_a_rest_compliance_is_inverted_once_per_rest_matrix_and_held_nodes(cache
     def warped(held):
         solver = ImplicitEuler(CorotationalFEM(mesh, Material(5e4, 0.3, 1000.0)), 0.02, rayleigh_mass=0.1,
                                rayleigh_stiffness=0.01, fixed=held)
-        return compliance.WarpedCompliance(solver)
+        return warping.WarpedCompliance(solver)
 
     clamped = np.flatnonzero(mesh.points[:, 0] == 0)
     first = warped(clamped).C0_host
     assert len(list(cache_dir.glob("rest_compliance-*.npz"))) == 1
-    inverse = compliance.rest_compliance
+    inverse = warping.rest_compliance
     counting, inversions = counted(lambda: None)
 
     def counted_inverse(*args, **kwargs):
         counting()
         return inverse(*args, **kwargs)
 
-    monkeypatch.setattr(compliance, "rest_compliance", counted_inverse)
+    monkeypatch.setattr(warping, "rest_compliance", counted_inverse)
     assert np.array_equal(warped(clamped).C0_host, first) and not inversions
     warped(clamped[:3])
     assert len(inversions) == 1 and len(list(cache_dir.glob("rest_compliance-*.npz"))) == 2

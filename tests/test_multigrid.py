@@ -167,7 +167,7 @@ def test_nodal_rotation_where_the_element_rotations_cancel(backend):
     of its elements; an ordinary node still gets the orthonormalised mean."""
     import taichi as ti
 
-    from tissue.contact.compliance import _nodal_rotations
+    from tissue.contact.warping import _nodal_rotations
 
     half_turn = np.diag([1.0, -1.0, -1.0])
     c, s = np.cos(0.3), np.sin(0.3)
@@ -193,7 +193,7 @@ def test_nodal_rotations_are_shared_while_current(solver):
     kernel on the FEM's element rotations, and only while they are those rotations' and at the
     tolerance asked: not after the element rotations were written by another launch (or a launch
     of the step's taken without recording it), nor after a rebuild, until the next step."""
-    from tissue.contact.compliance import _nodal_rotations
+    from tissue.contact.warping import _nodal_rotations
 
     sim = solver(execution="parallel", preconditioner="multigrid")
     tol = sim.fem.rotation_tolerance

@@ -1,6 +1,6 @@
 """The Delassus operator W kept as its factors (compliance warping's form), never formed whole.
 
-`FactoredDelassus` is what `tissue.contact.compliance` builds and what the contact solvers
+`FactoredDelassus` is what `tissue.contact.warping` builds and what the contact solvers
 (`frictional_contact`'s Gauss-Seidel, `newton`) and the haptic loop read: products, diagonal
 blocks and dense blocks among a few contacts, from the factors.
 """
@@ -17,7 +17,7 @@ import scipy.sparse as sp
 @dataclass
 class FactoredDelassus:
     """W = scale Σ_s P_s Q_s P_sᵀ: a Delassus operator kept as its factors, the form compliance
-    warping gives (tissue.contact.compliance: P_s = H R of body s on the dofs its rows touch, Q_s
+    warping gives (tissue.contact.warping: P_s = H R of body s on the dofs its rows touch, Q_s
     its rest compliance there), so that W is never formed: a Gauss-Seidel sweep reads the Q_s,
     which are far smaller than W when contact points outnumber the nodes they move.
 

@@ -46,7 +46,8 @@ from ..fem.regime import check_contact_motion
 from ..mesh import boundary_faces
 from ..options import Options, require, validate
 from ..stats import Stats
-from .compliance import ExactCompliance, WarpedCompliance
+from .compliance import ExactCompliance
+from .warping import WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, jacobian, offsets, with_free_values
 from .detection import Contacts, Detector
 from .delassus import FactoredDelassus

@@ -1,6 +1,6 @@
 """An on-disk cache of generated meshes: a procedural organ takes seconds to make, milliseconds to load.
 Its surface is cached too (`cached_arrays`): every tetrahedralisation of the organ starts from it;
-so is a body's dense rest compliance (tissue.contact.compliance), keyed by a hash of its matrix.
+so is a body's dense rest compliance (tissue.contact.warping), keyed by a hash of its matrix.
 
 Files are `.npz` under `$TISSUE_CACHE/meshes/`, else `~/.cache/tissue/meshes/`, named by a hash of
 what the mesh depends on: the generator's name and parameters, `VERSION`, the source of the
