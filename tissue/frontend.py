@@ -15,9 +15,10 @@ CG and multigrid hundreds of times). Most of that time went to two pure function
 Then, at each call site again, every source line of the function goes through `textwrap.fill`
 (to expand tabs: a pure function of the line). And when a module is imported, every `@ti.kernel` /
 `@ti.func` asks whether it is written in a class body through `inspect.getframeinfo`, which looks
-the module up among all loaded modules (`inspect.getmodule`) to read one source line: ~2 ms per
-decorator, some 230 of them on a scene's imports. `_inside_class` reads that line from
-`linecache` directly, as `getframeinfo` ends up doing.
+the module up among all loaded modules (`inspect.getmodule`) to read one source line, for every one
+of the hundreds of decorators on a scene's imports: a visible part of its start-up
+(bench.startup). `_inside_class` reads that line from `linecache` directly, as `getframeinfo`
+ends up doing.
 
 `install()` memoises the first three by their inputs, gives `get_pos_info` the fast wrapper and
 replaces the class check. Taichi receives

@@ -1,7 +1,7 @@
 """Replayed kernel launches, for the kernels a step runs every time over the same arrays.
 
-Taichi 1.7 sets every argument of every launch from Python, ~6-15 µs per ndarray (type checks,
-the template key, one setter call), and looks the compiled kernel up again; a step's kernel over a
+Taichi 1.7 sets every argument of every launch from Python (per ndarray: type checks, the
+template key, one setter call), and looks the compiled kernel up again; a step's kernel over a
 body's ~30 ndarrays would spend more time there than computing on a small mesh. `replayed(kernel)`
 records the launch context of a kernel's first launch with a given set of arguments (the same
 argpack objects, the same template and scalar values) and replays it afterwards: the context
@@ -20,7 +20,8 @@ so replays are used on the CPU only, where the tests exercise them; other archs 
 Taichi's copy kernel (a parallel launch: milliseconds on busy cores), and BLAS on kernels' arrays.
 `install()` (called by `tissue.backend.init`) makes every ndarray's `from_numpy` / `to_numpy` on
 the CPU a numpy copy through that view: Taichi compiles a copy kernel per element type, shape and
-dtype (about 11 of them on a scene's start, whose machine code every process makes again, ~0.3 s)
+dtype (about 11 of them on a scene's start, whose machine code every process makes again: see
+bench.kernel_cost)
 and launches one per call.
 """
 
@@ -168,9 +169,9 @@ def _read_return(primal, context, kind, i):
 
 def kept_pack(kept, kind, arrays):
     """(argpack, its arrays): `kept` (such a pair, or None) when `arrays` holds the same objects,
-    else `kind(**arrays)` anew. Building an argpack costs ~0.15 ms in Taichi, and launches over a
+    else `kind(**arrays)` anew. Building an argpack costs Taichi more than a launch, and launches over a
     kept one replay. The arrays are compared by identity, one by one in C (ndarrays have no value
-    equality): a tuple of their ids built in Python cost a few µs a launch over ~50 arrays.
+    equality): a tuple of their ids built in Python cost more, at every launch.
     `arrays`: {member: array}, or a tuple of the arrays in the order of `kind`'s members (cheaper
     to build, for a launch made every step)."""
     values = arrays if isinstance(arrays, tuple) else tuple(arrays.values())

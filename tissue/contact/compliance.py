@@ -33,7 +33,7 @@ three rows share fewer dofs than rows), W = h Gᵀ (Yᵀ Y) G, Y from S. The cor
 solve, A⁻¹ (Hᵀ λ).
 Without scikit-sparse (an optional extra: Debian's libsuitesparse-dev, then pip install
 tissue[cholmod]) scipy's SuperLU with the MMD order of Aᵀ + A stands in (`factorization="lu"`,
-2-3× slower on the scenes' bodies; bench/contact.py measures both). This is the reference for the
+slower on the scenes' bodies; bench/contact.py measures both). This is the reference for the
 warping error and the paper's "direct inversion" baseline.
 """
 

@@ -74,14 +74,14 @@ AUTO_PHASE, AUTO_SWEEPS = 16, 64  # auto: Gauss-Seidel while each AUTO_PHASE swe
                                   # a rate that reaches the tolerance within AUTO_HORIZON sweeps, at most
 AUTO_HORIZON = 100                # AUTO_SWEEPS, then Newton (Anderson's sweeps gain fast late: most of
                                   # liver_press's problems that reach the tolerance within 65 sweeps are
-                                  # 30-500× above it at sweep 32, and Newton's step costs ~30 sweeps)
+                                  # 30-500× above it at sweep 32, and Newton's step costs tens of sweeps)
 AUTO_LARGE, AUTO_PHASE_LARGE = 1000, 4  # ... phases of 4 sweeps from 1,000 contacts on, where a sweep
-                                        # costs tens of ms (the press plate's 1,155 contacts, factored: ~20),
-                                        # the rate's horizon AUTO_SWEEPS
+                                        # costs a large part of a step (the press plate's 1,155 contacts,
+                                        # factored), the rate's horizon AUTO_SWEEPS
 AUTO_SMALL, AUTO_PHASE_SMALL, AUTO_SWEEPS_SMALL = 32, 64, 256   # ... and below 32 contacts phases of 64,
-                                        # at most 256 sweeps (the rate's horizon): a sweep costs a few µs
-                                        # there, Newton's host step hundreds (the floor scene's 12 contacts:
-                                        # 1-2 µs a sweep; 14 of 72 steps fell back, at 0.5-1.5 ms each), and
+                                        # at most 256 sweeps (the rate's horizon): there a sweep costs a
+                                        # small fraction of Newton's host step (the floor scene's 12 contacts:
+                                        # 14 of 72 steps fell back; bench.contact_solvers), and
                                         # where 16 sweeps did not halve the residual, 72-223 reached the
                                         # tolerance
 
@@ -370,12 +370,12 @@ class FrictionalContactSolver:
         """Without `reduce`: sweeps over the whole problem, in one launch. With it: sweeps on the
         contacts in play, those pushed (r ≠ 0) or touching (u_n ≤ 0). Within an alarm distance
         most contacts never touch (the pressed liver: ~15 of ~150), so W among the k in play is
-        formed (3k × 3k, dense) and swept: a sweep there costs a few µs, against ~25 µs over the
+        formed (3k × 3k, dense) and swept: a sweep there costs a fraction of one over the
         factors, whose updates run through every dof the contacts move, and Anderson's
         combinations see only the reactions that move. Forming W there and checking the whole
-        problem (numpy: a launch with the kernel's arguments costs more) add about a
-        millisecond, which pays on problems that need more than a few dozen sweeps (the liver
-        pressed at 450 rows: 2.1 against 2.7 ms per solve, side by side in one run). After each
+        problem (numpy: a launch with the kernel's arguments costs more) cost a fixed
+        price per solve, which pays on problems that need more than a few dozen sweeps (the liver
+        pressed at 450 rows, side by side in one run: docs/performance.md, "Contact"). After each
         solve on the contacts in play, the whole problem's residual adds those found
         penetrating; separated ones carry r = 0, their exact solution, so the stopping rule is
         the whole problem's. Sweeps (the iteration cap) count those of every solve. When more

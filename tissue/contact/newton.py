@@ -37,7 +37,7 @@ GMRES does not get there within REUSE_ITERATIONS. Where no LU serves (a solve's 
 many contacts changed state since: the early steps of a solve from zero, which a factor would
 serve once), GMRES preconditioned by J's 3×3 diagonal blocks first, within JACOBI_ITERATIONS
 (each an O(k²) product): those steps' forcing is loose, and on the press plate it gets there in
-tens of iterations (~30-90 ms against a ~0.1-0.15 s LU). On the press plate (2,166 closing
+tens of iterations, in a fraction of an LU's time. On the press plate (2,166 closing
 rows, ~5-8 Newton steps a solve) the first, solved from zero, then takes no LU at all (4
 before), the others 0-1 instead of 3 (5-7 with a fresh LU every step).
 
@@ -173,7 +173,7 @@ def newton_step(W, W_block, r, phi, A, B, closing, boost=1.0, shared=None, forci
     # Once few contacts change state from one step to the next, J differs from the last factorised
     # one in their rows (and columns, for those that close or open), the sliding contacts' slip
     # directions and the shift: GMRES preconditioned by the last LU then takes a few O(k²)
-    # iterations (on the press plate ~5 ms each), not a new O(k³) LU (~100 ms). An inexact Newton
+    # iterations, not a new O(k³) LU (bench.contact_auto_phase's "reused LU"). An inexact Newton
     # step (Dembo, Eisenstat & Steihaug 1982): its relative residual `forcing` (solve's, small once
     # Φ falls fast) keeps the convergence fast.
     state = np.zeros(len(phi), np.int8)

@@ -57,7 +57,7 @@ from .storage import Storage
 
 # Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`; method 'gauss_seidel'
 # only: 'auto' sweeps the whole problem, which cost less on liver_press's problems, side by side)
-# costs about a millisecond of numpy and saves ~20 µs a sweep: the stage uses it after a step that
+# costs a fixed price of numpy per solve and saves part of every sweep: the stage uses it after a step that
 # took more sweeps than this (the problems change little from one step to the next).
 REDUCE_ABOVE = 24
 

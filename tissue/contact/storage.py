@@ -8,9 +8,8 @@ arrays step after step, bundled in argpacks kept with them (`pack`), also let a 
 (tissue.launch).
 
 Arrays are Taichi ndarrays, or with `host` on the CPU numpy arrays (`HostArray`): kernels read and
-write those in place, and one costs a microsecond to allocate against ~120 µs for a Taichi
-ndarray, which matters to callers that make a storage per problem (the frictional contact solver's
-API).
+write those in place, and one costs a small fraction of a Taichi ndarray's allocation, which
+matters to callers that make a storage per problem (the frictional contact solver's API).
 """
 
 import numpy as np
@@ -33,9 +32,9 @@ class HostArray(np.ndarray):
         self[...] = other
 
 
-# Elements a named array is first allocated with at least: a Taichi ndarray costs ~0.1 ms to
-# allocate, and each growth rebuilds the argpacks over it and records their launches again, 1-3 ms
-# a step that grows (the pressed liver's per-row arrays grew 2-5 times each from its first
+# Elements a named array is first allocated with at least: a Taichi ndarray is slow to allocate,
+# and each growth rebuilds the argpacks over it and records their launches again, in the step that
+# grows (the pressed liver's per-row arrays grew 2-5 times each from its first
 # contacts; from 256, its per-row and per-block arrays still grew once each, at 85 contacts).
 FIRST_ROOM = 1024
 
@@ -126,7 +125,7 @@ class Storage:
 
     def pack(self, name, kind, **arrays):
         """The argpack `kind` over `arrays`, kept under `name` and built again only when one of
-        them is another object (after a growth): building one costs ~0.15 ms in Taichi, and
-        launches over a kept one replay (tissue.launch.kept_pack)."""
+        them is another object (after a growth): building one costs Taichi more than a launch,
+        and launches over a kept one replay (tissue.launch.kept_pack)."""
         kept = self._packs[name] = kept_pack(self._packs.get(name), kind, arrays)
         return kept[0]

@@ -308,7 +308,7 @@ def _rest_compliance(solver) -> np.ndarray:
     """The body's dense A₀⁻¹ (reference.rest_compliance), kept in the on-disk cache
     (tissue.mesh.cache) under a hash of A₀ and the held nodes, what it is a function of: scenes
     that share a body at the same dt and damping (liver_press and liver_grasp) invert it once per
-    machine. The 1,300-tetrahedron liver's takes ~0.1 s of CPU, reading it back a few ms."""
+    machine. Reading it back costs a small part of inverting A₀."""
     A, fixed = solver.rest_matrix(), np.asarray(solver.fixed_nodes, dtype=np.int64)
     digest = hashlib.sha256(str((A.shape, A.data.dtype, A.indices.dtype)).encode())
     for array in (A.data, A.indices, A.indptr, fixed):
@@ -340,7 +340,7 @@ class WarpedCompliance:
         be = backend.current()
         self.solver, self.real = solver, be.real
         self._np = np.float64 if be.real == ti.f64 else np.float32
-        # The element types of the per-step arrays (Taichi builds a type in ~1.4 µs: once here).
+        # The element types of the per-step arrays (Taichi builds a type anew at each call: once here).
         self._mat3, self._vec3 = ti.types.matrix(3, 3, be.real), ti.types.vector(3, be.real)
         self.source = None                  # a CuttingCompliance to read A₀⁻¹ from (follow)
         self._tol = solver.fem.rotation_tolerance

@@ -296,7 +296,7 @@ class Cutter:
 def _boxes_meeting(x: np.ndarray, tets: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The elements whose bounding box meets the box [lo, hi]: per node 6 bits (x ≤ hi, x ≥ lo per
     axis), or-ed over each element's corners (gathering the corners' coordinates and reducing over
-    them costs ~10x more)."""
+    them costs several times more)."""
     bits = ((x <= hi) * np.array([1, 2, 4]) + (x >= lo) * np.array([8, 16, 32])).sum(axis=1).astype(np.uint8)
     corners = bits[tets]
     return np.flatnonzero((corners[:, 0] | corners[:, 1] | corners[:, 2] | corners[:, 3]) == 63)

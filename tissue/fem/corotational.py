@@ -599,7 +599,7 @@ class CorotationalFEM:
                                 accumulator=ti.ndarray(vec3, n if self.accumulation != "gather" else 1))
         self.work = FEM_WORK(**self.work_arrays)
         self._io = [ti.ndarray(vec3, n) for _ in range(2)]
-        self._stresses = ti.ndarray(mat3, m)     # element_stress_numpy's (kept: an allocation costs ~1 ms)
+        self._stresses = ti.ndarray(mat3, m)     # element_stress_numpy's (kept: an allocation per call costs more)
         self._version = model.version
         return True
 

@@ -16,7 +16,7 @@ reached one step later. The step's correction is not lost, only spread over a st
 simulation's own force is, the device feels after one step instead of a jump.
 
 A tick's time stays bounded: converging the new problem can take several re-solves (of
-max_sweeps sweeps each: 3-4 ms in one tick at 60 contacts, measured in bench/haptics), so it
+max_sweeps sweeps each: more than a tick's time in one tick, measured in bench/haptics), so it
 takes one per tick, on a second solver, at the previous tick's pose, while the old problem is
 still rendered; the tick in which it converges (or after HANDOVER_SOLVES) switches to it. A tick
 then costs at most two re-solves, and the new step arrives a few ticks later at worst.

@@ -111,7 +111,7 @@ class Trajectory:
             np.savetxt(path, self.keys, delimiter=",", header="t,x,y,z,qw,qx,qy,qz,jaw")
 
     def __call__(self, time: float) -> DevicePose:
-        # (Called every haptic tick: a bisection and one lerp of a row, ~5 µs, not np.interp per column.)
+        # (Called every haptic tick: a bisection and one lerp of a row, cheaper than np.interp per column.)
         times, k = self._times, self.keys
         i = bisect.bisect_right(times, time) - 1
         if i < 0:

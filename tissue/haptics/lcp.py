@@ -22,9 +22,10 @@ xⱼ' = xⱼ⁺ + gⱼ Δⱼ + h A⁻¹ Jⱼᵀ (λ' - λ) and the device render
 
 Compiled once: one Taichi kernel over numpy buffers of a fixed capacity (the problem's size is a
 number in the buffers, not an argument), launched by replaying its recorded context
-(tissue.launch): a tick costs the sweeps and a few µs of launch, not Taichi's ~10 µs per array
-argument. Why not numpy: a sweep is sequential (contact after contact), ~10 µs of interpreter per
-contact in Python, 0.5 ms a sweep at 50 contacts; the kernel sweeps 50 contacts in ~10 µs.
+(tissue.launch): a tick costs the sweeps and a replayed launch, not Taichi's setting of every array
+argument. Why not numpy: a sweep is sequential (contact after contact), so in Python every
+contact pays the interpreter, and a sweep over tens of contacts would take much of a tick
+(bench/haptics times a re-solve).
 """
 
 

@@ -1,8 +1,8 @@
 """The haptic loop in its own process, fed by the simulation through shared memory.
 
 Why a process: a running Taichi CPU kernel holds Python's GIL (a thread meant to tick every 1 ms
-stalled 61 ms behind a 77 ms kernel), so a haptic thread in the simulation's process would stop
-at every step. The loop runs in a process started by `spawn` (a fresh interpreter: no copy of the
+waits until the kernel ends: many ticks behind), so a haptic thread in the simulation's process
+would stop at every step. The loop runs in a process started by `spawn` (a fresh interpreter: no copy of the
 simulation's Taichi state), with Taichi on one CPU thread, its re-solve kernel compiled (or loaded
 from the offline cache) and run once before its clock starts.
 
@@ -176,7 +176,7 @@ POSE_SIZE = 15                 # time, position (3), orientation (9), jaw, ticks
 
 
 def pack_pose(pose: DevicePose, ticks: int, out: np.ndarray | None = None) -> np.ndarray:
-    """The pose as a record, into `out` if given (the loop reuses one: np.r_ costs ~10 µs a tick)."""
+    """The pose as a record, into `out` if given (the loop reuses one rather than build one each tick)."""
     out = np.empty(POSE_SIZE) if out is None else out
     out[0], out[1:4], out[4:13], out[13], out[14] = pose.time, pose.position, pose.orientation.ravel(), pose.jaw, ticks
     return out

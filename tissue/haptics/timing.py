@@ -11,24 +11,24 @@ what helped there.
 - absolute: the sleep is clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME) to the deadline itself
   (nothing between reading the clock and sleeping can make it late), else time.sleep(left).
 - collect_garbage: False freezes Python's objects after set-up and turns the cyclic collector off
-  in the loop's process (a full collection walks every object Taichi and numpy made: 190-440 ms
-  at load 10 here, the time the log's `priority` line gives; in a 10 s run none came);
+  in the loop's process (a full collection walks every object Taichi and numpy made: many ticks'
+  worth at once; the log's `priority` line gives its time);
   reference counting still frees the loop's per-tick objects, which hold no cycles (the loop
   reports what a final collection found).
 - lock_memory: malloc told to keep its heap (no trimming, no mmap below 16 MB: a tick's
   temporaries reuse pages already touched instead of faulting new ones in), then
   mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) once the loop's buffers are allocated and
   touched: what is resident stays so (no swap-in, no code page reclaimed and read again inside a
-  tick). Without MCL_ONFAULT, mlockall made Taichi's reserved arena resident: 1.6 GB and 1.3 s at
+  tick). Without MCL_ONFAULT, mlockall made Taichi's reserved arena resident: gigabytes, paged in at
   start (Linux; mlockall needs root or a large RLIMIT_MEMLOCK).
 - timer_slack_ns: the thread's timer slack (prctl PR_SET_TIMERSLACK; 50 µs by default at normal
   priority: a sleep may end that much late, on purpose, to batch wake-ups).
 - slice_us: at normal priority, the thread's scheduling slice (sched_setattr's sched_runtime, read
   by Linux ≥ 6.12's EEVDF scheduler as the task's requested slice): a short slice gives the woken
   loop an earlier virtual deadline, so it preempts the running task instead of waiting for its
-  slice to end. No privilege is needed; older kernels ignore it. Off by default: measured, 100 µs
-  (shorter than a tick's work) got the loop preempted inside its ticks (480-1,090 times a run
-  against 8-130 with the kernel's slice) for no better rate (bench/results/haptics_tuning.json).
+  slice to end. No privilege is needed; older kernels ignore it. Off by default: measured, a
+  slice shorter than a tick's work got the loop preempted inside its ticks far more often than
+  the kernel's slice did, for no better rate (bench.haptics's `tuning` ablation).
 """
 
 from __future__ import annotations

@@ -142,8 +142,8 @@ def surface_samples(points: np.ndarray, triangles: np.ndarray, count: int) -> tu
 
 def open3d_core():
     """open3d's compiled core (`open3d.pybind`: core, t.geometry, io), loaded without the package's
-    Python layer, whose visualisation imports dash, plotly and IPython: about 0.4 s instead of
-    1.2 s here, paid by every run that meshes an organ. The module is registered under its own
+    Python layer, whose visualisation imports dash, plotly and IPython: a fraction of the
+    package's import time, paid by every run that meshes an organ. The module is registered under its own
     name, so a later `import open3d` adopts it rather than loading the extension twice; where the
     package is laid out otherwise (another open3d version), the package itself."""
     import importlib.machinery

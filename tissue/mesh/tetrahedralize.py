@@ -23,8 +23,8 @@ the procedural liver, stomach and colon, spheres, a box, a torus, a thin plate, 
 assert >= 12. Boundary vertices lie on the surface to float32 precision (~1e-6 of the spacing).
 Parts thinner than the spacing are lost or serrated, and sharp edges and corners of the input are
 rounded off at the scale of the spacing (stuffing does not keep features): the liver at 1,300
-tetrahedra holds 94 % of the volume its surface encloses, 97.5 % at 3,900 and 99 % at 20,000. About 0.4 s for 1,300
-tetrahedra and 2 s for 20,000 on one core (after open3d's import).
+tetrahedra holds 94 % of the volume its surface encloses, 97.5 % at 3,900 and 99 % at 20,000. Its time on a scene:
+the `mesh generation` line of the run's timing table (the mesh is then cached: tissue.mesh.cache).
 """
 
 from __future__ import annotations

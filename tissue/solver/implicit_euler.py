@@ -368,8 +368,8 @@ class ImplicitEuler:
 
     def report(self) -> tuple:
         """The last step's CG report (iterations, ‖r‖², ‖b‖², breakdown, non-finite nodes, inverted
-        elements), read where the step's kernels left it: on the CPU in the arrays' own memory (a
-        kernel's return costs ~1 µs a value to read)."""
+        elements), read where the step's kernels left it: on the CPU in the arrays' own memory (Taichi
+        reads a kernel's return values one call at a time)."""
         scalars, inverted = self.arrays["scalars"], self.fem.work_arrays["inverted"]
         if backend.current().arch == "cpu":
             scalars, inverted = self._view(scalars), self._view(inverted)

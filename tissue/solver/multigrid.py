@@ -38,7 +38,8 @@ from .operator import factors, multiply, operator_row
 from .state import DONE
 
 # Chebyshev targets [λ/15, λ]: the part of the spectrum the coarse space misses. Against [λ/30, λ],
-# 2-13 % fewer CG iterations per scene at the same cost each (docs/performance.md, branch free2).
+# fewer CG iterations on every multigrid scene at the same cost each (bench.smoothing_range;
+# docs/performance.md, branch free2).
 SMOOTHING_RANGE = 15.0
 LAMBDA_MARGIN = 1.1      # above the estimated λ_max of D₀⁻¹A₀, for rotations and the estimate's error
 

@@ -210,7 +210,7 @@ class EnergyControl:
 
     def _totals(self) -> np.ndarray:
         """The evaluations' totals where the launches left them: on the CPU in the array's own
-        memory (a kernel's return costs ~1 µs a value to read)."""
+        memory (Taichi reads a kernel's return values one call at a time)."""
         if self._totals_view is not None:
             return self._totals_view
         return self._work.totals.to_numpy()

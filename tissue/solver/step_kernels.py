@@ -54,11 +54,11 @@ class Scheme:
 # A step's kernels take one flat argpack: the members of the model (MODEL), the FEM's work
 # (FEM_WORK), the state, the assembled blocks (BLOCKS) and the multigrid. Flat, because a kernel
 # reloads an ndarray's address after every store to an ndarray (they might alias), one load per
-# level of nesting: measured here, a nested pack cost ~30 % more than a flat one in such loops.
+# level of nesting: measured here, a nested pack cost more than a flat one in such loops.
 STEP_MEMBERS = (*MODEL.members, *FEM_WORK.members, *STATE_MEMBERS, *BLOCKS.members, *MULTIGRID_MEMBERS)
 STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS})
 # The same less the multigrid's members, for the serial step of the other schemes: Taichi's CPU
-# launcher sets every ndarray of a pack at each launch, replayed or not (~0.35 µs each).
+# launcher sets every ndarray of a pack at each launch, replayed or not, so unread ones cost too.
 PLAIN_STEP = ti.types.argpack(**{name: ti.types.ndarray() for name in STEP_MEMBERS
                                  if name not in MULTIGRID_MEMBERS})
 BLOCK_MEMBERS = tuple(BLOCKS.members)
@@ -349,9 +349,9 @@ def end(k: ti.template()):
 
 def inlines_multigrid(k, o, *_) -> bool:
     """A step kernel's instance with the multigrid V-cycle inlined: where Taichi's IR passes, chosen
-    per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (the
-    serial step: 10 -> 153 CPU s of compiling, for a step a few % faster; the parallel kernels:
-    2.5x, for no faster step) and seconds on the other schemes' (bench/results/compile_options_liver19k.json)."""
+    per kernel (TISSUE_ADVANCED_OPTIMIZATION=auto), are left off. They take minutes on it (many times
+    the compile without them, for a step barely faster, if at all) and seconds on the other schemes'
+    (bench.compile_options)."""
     return o.preconditioner == "multigrid"
 
 
