@@ -37,7 +37,6 @@ the correction) reads whole rows.
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse as sp
 import taichi as ti
 
 from .. import backend

@@ -199,6 +199,7 @@ LOG_COLUMNS = ("clock", "period", "fx", "fy", "fz", "grip", "cx", "cy", "cz", "s
 
 @dataclass
 class _Config:
+    """What the haptic process takes from its parent (pickled by `spawn`)."""
     device: object
     rate: float
     max_contacts: int
@@ -385,9 +386,10 @@ class HapticLoop:
         self.problems = SharedRecord(record_size(self.max_contacts))
         self.poses = SharedRecord(32)
         self._epoch, self._ready, self._stop = ctx.Value("d", 0.0, lock=False), ctx.Event(), ctx.Event()
-        config = _Config(self.device, self.rate, self.max_contacts, self.max_sweeps, self.tolerance, self.problems.name,
-                         self.poses.name, os.getpid(), self.idle_timeout, self.log_path or "", self.max_ticks,
-                         self.realtime, self.cpu, self.tuning)
+        config = _Config(device=self.device, rate=self.rate, max_contacts=self.max_contacts, max_sweeps=self.max_sweeps,
+                         tolerance=self.tolerance, problem_channel=self.problems.name, pose_channel=self.poses.name,
+                         parent=os.getpid(), idle_timeout=self.idle_timeout, log_path=self.log_path or "",
+                         max_ticks=self.max_ticks, realtime=self.realtime, cpu=self.cpu, tuning=self.tuning)
         self.process = ctx.Process(target=_run, args=(config, self._epoch, self._ready, self._stop),
                                    name="tissue-haptics", daemon=True)
         self.process.start()
