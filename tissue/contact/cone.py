@@ -29,10 +29,10 @@ def natural_map_residual(W, q, mu, r) -> float:
     """||r - P_K(r - û)|| / (1 + ||q||) with u = W r + q (see the module docstring)."""
     q, r = np.asarray(q, dtype=np.float64), np.asarray(r, dtype=np.float64)
     mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (len(q) // 3,))
-    return float(np.sqrt(_error2_numpy(r, W @ r + q, mu)) / (1.0 + np.linalg.norm(q)))
+    return float(np.sqrt(natural_map_error2(r, W @ r + q, mu)) / (1.0 + np.linalg.norm(q)))
 
 
-def _error2_numpy(r, u, mu) -> float:
+def natural_map_error2(r, u, mu) -> float:
     """The squared natural-map error Σ |r - P_K(r - û)|² of reactions r at velocities u."""
     R, U = r.reshape(-1, 3), u.reshape(-1, 3)
     x = R - U
@@ -67,7 +67,7 @@ def _slide_eval(S, c, ant, ann, bn, mu, beta):
 
 
 @ti.func
-def _local_solve(A, b, mu):
+def local_solve(A, b, mu):
     """Exact solution r of one contact's problem u = A r + b (A the 3x3 diagonal block of W).
 
     Separation iff b_n >= 0 (then r = 0 gives û_n = b_n >= 0; testing b_n rather than the sign of
@@ -118,7 +118,7 @@ def _local_solve(A, b, mu):
 
 
 @ti.func
-def _contact_error2(r, u, mu):
+def contact_error2(r, u, mu):
     """Squared natural-map error of one contact: |r - P_K(r - û)|^2."""
     x = r - u
     ut = ti.Vector([u[1], u[2]]).norm()
@@ -135,29 +135,22 @@ def _contact_error2(r, u, mu):
 
 
 @ti.func
-def _vec(a: ti.template(), i):
+def vector_at(a: ti.template(), i):
+    """Contact i's three entries of a flat array (3 per contact) as a vector."""
     return ti.Vector([a[3 * i], a[3 * i + 1], a[3 * i + 2]])
 
 
 @ti.func
-def _block(Wd: ti.template(), i):
+def matrix_at(blocks: ti.template(), i):
+    """Block i of an array of 3×3 blocks (n, 3, 3) as a matrix."""
     A = ti.Matrix.zero(float, 3, 3)
     for a, c in ti.static(ti.ndrange(3, 3)):
-        A[a, c] = Wd[i, a, c]
+        A[a, c] = blocks[i, a, c]
     return A
 
 
 @ti.func
-def _error2(r: ti.template(), u: ti.template(), mu: ti.template()):
-    s = 0.0
-    for i in range(mu.shape[0]):
-        s += _contact_error2(_vec(r, i), _vec(u, i), mu[i])
-    return s
-
-
-
-@ti.func
-def _project(x, mu):
+def project_contact(x, mu):
     """Projection of x = (x_n, x_t1, x_t2) on K_mu (as project_cone)."""
     xn, nt = x[0], ti.Vector([x[1], x[2]]).norm()
     p = x

@@ -59,7 +59,7 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from . import gauss_seidel, jacobi, newton
-from .cone import _error2_numpy, natural_map_residual, project_cone
+from .cone import natural_map_error2, natural_map_residual, project_cone
 from .delassus import FactoredDelassus
 from .layouts import CSR, DELASSUS, DENSE, FACTORED, IN_PLAY_MAX, PROBLEM
 from .storage import Storage
@@ -388,7 +388,7 @@ class FrictionalContactSolver:
         its, play = 0, np.zeros(self.n, bool)
         while True:
             u = self.W @ r + q
-            error2 = _error2_numpy(r, u, self.mu)
+            error2 = natural_map_error2(r, u, self.mu)
             if error2 <= tol_abs ** 2 or its >= max_iterations:
                 break
             new = ((r.reshape(-1, 3) != 0).any(axis=1) | (u[0::3] <= 0)) & ~play
@@ -447,7 +447,7 @@ class FrictionalContactSolver:
         # (newton._Shared) and products through the factors.
         r, u, its, err2 = newton.solve(self.W, self._block, self._q_host, self.mu, self._D_host,
                                        self._read(self._r), tol_abs, max_iterations, fallback,
-                                       lambda r, u: _error2_numpy(r, u, self.mu))
+                                       lambda r, u: natural_map_error2(r, u, self.mu))
         self._write(self._r, r)
         self._write(self._u, u)
         self._last_error2 = err2

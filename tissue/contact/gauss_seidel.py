@@ -2,7 +2,7 @@
 2006), with Anderson acceleration: the kernel, all sweeps in one launch.
 
 Contacts are swept in order, each contact's 3×3 problem solved exactly with the others' reactions
-fixed (tissue.contact.cone._local_solve). The sweep is sequential by nature, so the whole
+fixed (tissue.contact.cone.local_solve). The sweep is sequential by nature, so the whole
 iteration loop runs serially inside ONE Taichi kernel (a launch costs more than a sweep of a few
 hundred contacts). A sweep reads W once (contact i gathers rows 3i..3i+2 of W times r); the exact
 residual needs u = W r + q, a second pass, so it is computed only when the errors met during the
@@ -25,7 +25,7 @@ strongly coupled soft-body problems it cuts the sweeps to a tolerance 2-4x (benc
 
 import taichi as ti
 
-from .cone import _block, _contact_error2, _local_solve, _project, _vec
+from .cone import contact_error2, local_solve, matrix_at, project_contact, vector_at
 from ..launch import replayed
 from .layouts import (CONTACTS, DELASSUS, FACTORED, HORIZON, MAX_SWEEPS, PROBLEM, ROOM, STALL, TOL2, WINDOW, _gather_play,
                       _play_offsets, _refresh, _residual, _spread, _wr, _wr_play)
@@ -122,11 +122,11 @@ def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti
                     e -= gram[t, c + i] * gram[t, y]
                 gram[i, y] = e / gram[i, c + i]
             for i in range(n):
-                x = _vec(r, i)
+                x = vector_at(r, i)
                 for j in range(p):
                     for a in ti.static(range(3)):
                         x[a] -= gram[j, y] * hist[j, 3 * i + a]
-                x = _project(x, mu[i])
+                x = project_contact(x, mu[i])
                 for a in ti.static(range(3)):
                     r[3 * i + a] = x[a]
 
@@ -208,21 +208,21 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             # sees every contact, or the next REVISIT_EVERY-th sweep (neighbours' pushes can close its
             # gap meanwhile; without it, problems stopped by the sweep cap penetrated 4-7× deeper):
             # most of those within the alarm distance never touch.
-            ri = _vec(P.r, i)
+            ri = vector_at(P.r, i)
             if ri.norm_sqr() == 0.0 and P.u[3 * i] > 0.0 and not revisit:
                 continue
-            A = _block(W.Wd, i)
+            A = matrix_at(W.Wd, i)
             wr = ti.Vector([0.0, 0.0, 0.0])
             if formed:
                 wr = _wr_play(W, P.r, n, i)
             else:
                 wr = _wr(layout, W, P.r, n, i)
-            ui = _vec(P.q, i) + wr
-            rnew = _local_solve(A, ui - A @ ri, P.mu[i])
+            ui = vector_at(P.q, i) + wr
+            rnew = local_solve(A, ui - A @ ri, P.mu[i])
             for k in ti.static(range(3)):
                 P.r[3 * i + k] = rnew[k]
                 P.u[3 * i + k] = ui[k]
-            est += _contact_error2(ri, ui, P.mu[i])
+            est += contact_error2(ri, ui, P.mu[i])
             if ti.static(layout == FACTORED):
                 dr = rnew - ri
                 if not formed and dr.dot(dr) > 0.0:

@@ -12,7 +12,7 @@ import numpy as np
 import taichi as ti
 
 from .. import backend
-from .cone import _block, _contact_error2, _local_solve, _vec
+from .cone import contact_error2, local_solve, matrix_at, vector_at
 from .layouts import CONTACTS, DELASSUS, PROBLEM, _refresh, _wr, array
 
 JACOBI_CHECK_EVERY = 10   # the residual is read back (a device sync) every this many iterations
@@ -56,7 +56,7 @@ def _matvec(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     for _ in range(1):
         _refresh(layout, W, P.r, n)
     for i in range(n):
-        ui = _vec(P.q, i) + _wr(layout, W, P.r, n, i)
+        ui = vector_at(P.q, i) + _wr(layout, W, P.r, n, i)
         for k in ti.static(range(3)):
             P.u[3 * i + k] = ui[k]
 
@@ -64,9 +64,9 @@ def _matvec(layout: ti.template(), W: DELASSUS, P: PROBLEM):
 @ti.kernel
 def _jacobi_step(W: DELASSUS, P: PROBLEM, omega: float):
     for i in range(P.sizes[CONTACTS]):
-        A = _block(W.Wd, i)
-        ri = _vec(P.r, i)
-        d = _local_solve(A, _vec(P.u, i) - A @ ri, P.mu[i]) - ri
+        A = matrix_at(W.Wd, i)
+        ri = vector_at(P.r, i)
+        d = local_solve(A, vector_at(P.u, i) - A @ ri, P.mu[i]) - ri
         for c in ti.static(range(3)):               # a convex combination stays in the cone
             P.r[3 * i + c] += omega * d[c]
 
@@ -75,4 +75,4 @@ def _jacobi_step(W: DELASSUS, P: PROBLEM, omega: float):
 def _error2_kernel(P: PROBLEM):
     P.stats[1] = 0.0
     for i in range(P.sizes[CONTACTS]):
-        P.stats[1] += _contact_error2(_vec(P.r, i), _vec(P.u, i), P.mu[i])
+        P.stats[1] += contact_error2(vector_at(P.r, i), vector_at(P.u, i), P.mu[i])

@@ -26,7 +26,7 @@ import numpy as np
 import taichi as ti
 
 from .. import backend
-from .cone import _block, _contact_error2, _vec
+from .cone import contact_error2, matrix_at, vector_at
 from .storage import HostArray
 
 DENSE, CSR, FACTORED = 0, 1, 2
@@ -95,7 +95,7 @@ def _wr_factored(index: ti.template(), blocks: ti.template(), y: ti.template(), 
     s = ti.Vector([0.0, 0.0, 0.0])
     for e in range(index[i], index[i + 1]):
         c = index[o_col + e]
-        s += _block(blocks, e) @ ti.Vector([y[c], y[c + 1], y[c + 2]])
+        s += matrix_at(blocks, e) @ ti.Vector([y[c], y[c + 1], y[c + 2]])
     return s
 
 
@@ -118,7 +118,7 @@ def _spread(W: ti.template(), n, i, dr):
     o_col, o_seg, o_y, o_q, _ = _factored_offsets(W, n)
     scale = W.scale[0]
     for e in range(W.a[i], W.a[i + 1]):
-        z = scale * (_block(W.b, e).transpose() @ dr)
+        z = scale * (matrix_at(W.b, e).transpose() @ dr)
         seg = W.a[o_seg + e]
         y0 = W.a[o_y + seg]
         d = W.a[o_y + seg + 1] - y0
@@ -139,7 +139,7 @@ def _play_offsets(W: ti.template(), n):
 def _in_play(r: ti.template(), u: ti.template(), i):
     """Contact i carries a reaction or touched (u_n ≤ 0) when last solved: a sweep visits it (the
     negation of the sweeps' skip test, whatever the numbers)."""
-    return not (_vec(r, i).norm_sqr() == 0.0 and u[3 * i] > 0.0)
+    return not (vector_at(r, i).norm_sqr() == 0.0 and u[3 * i] > 0.0)
 
 
 @ti.func
@@ -156,7 +156,7 @@ def _join_play(W: ti.template(), n, i):
     for k in range(3 * dofs):
         W.dense[ov + k] = 0.0
     for e in range(W.a[i], W.a[i + 1]):
-        B = _block(W.b, e)
+        B = matrix_at(W.b, e)
         seg = W.a[o_seg + e]
         y0 = W.a[o_y + seg]
         d = W.a[o_y + seg + 1] - y0
@@ -177,7 +177,7 @@ def _join_play(W: ti.template(), n, i):
             V = ti.Matrix.zero(float, 3, 3)
             for a, b in ti.static(ti.ndrange(3, 3)):
                 V[a, b] = W.dense[c + a * dofs + b]
-            G += V @ _block(W.b, f).transpose()
+            G += V @ matrix_at(W.b, f).transpose()
         for a, b in ti.static(ti.ndrange(3, 3)):
             W.dense[(3 * s + a) * stride + 3 * t + b] = scale * G[a, b]
         if t != s:
@@ -212,7 +212,7 @@ def _wr_play(W: ti.template(), r: ti.template(), n, i):
     s = W.active[i]
     out = ti.Vector([0.0, 0.0, 0.0])
     for t in range(W.active[o_count]):
-        rj = _vec(r, W.active[o_list + t])
+        rj = vector_at(r, W.active[o_list + t])
         for a in ti.static(range(3)):
             base = (3 * s + a) * stride + 3 * t
             out[a] += W.dense[base] * rj[0] + W.dense[base + 1] * rj[1] + W.dense[base + 2] * rj[2]
@@ -230,9 +230,9 @@ def _refresh(layout: ti.template(), W: ti.template(), r: ti.template(), n):
         for k in range(W.a[o_q - 1]):
             W.z[k] = 0.0
         for i in range(n):
-            ri = _vec(r, i)
+            ri = vector_at(r, i)
             for e in range(W.a[i], W.a[i + 1]):
-                t = _block(W.b, e).transpose() @ ri
+                t = matrix_at(W.b, e).transpose() @ ri
                 col = W.a[o_col + e]
                 for k in ti.static(range(3)):
                     W.z[col + k] += t[k]
@@ -256,10 +256,10 @@ def _residual(layout: ti.template(), W: ti.template(), P: ti.template(), n):
     """u = W r + q for each of the n contacts, and the squared natural-map error of r."""
     _refresh(layout, W, P.r, n)
     for i in range(n):
-        ui = _vec(P.q, i) + _wr(layout, W, P.r, n, i)
+        ui = vector_at(P.q, i) + _wr(layout, W, P.r, n, i)
         for k in ti.static(range(3)):
             P.u[3 * i + k] = ui[k]
     error2 = 0.0
     for i in range(n):
-        error2 += _contact_error2(_vec(P.r, i), _vec(P.u, i), P.mu[i])
+        error2 += contact_error2(vector_at(P.r, i), vector_at(P.u, i), P.mu[i])
     return error2

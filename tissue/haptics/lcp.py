@@ -35,7 +35,7 @@ import numpy as np
 import taichi as ti
 
 from ..contact.delassus import FactoredDelassus
-from ..contact.cone import _contact_error2, _local_solve
+from ..contact.cone import contact_error2, local_solve
 from ..errors import TissueError
 from ..launch import replayed
 
@@ -169,8 +169,8 @@ def _resolve(W: ti.types.ndarray(ndim=2), q: ti.types.ndarray(ndim=1), J: ti.typ
                     for b in ti.static(range(3)):
                         A[a, b] = W[3 * i + a, 3 * i + b]
                 ri = ti.Vector([r[3 * i], r[3 * i + 1], r[3 * i + 2]])
-                est += _contact_error2(ri, ui, mu[i])
-                rnew = _local_solve(A, ui - A @ ri, mu[i])
+                est += contact_error2(ri, ui, mu[i])
+                rnew = local_solve(A, ui - A @ ri, mu[i])
                 for a in ti.static(range(3)):
                     r[3 * i + a] = rnew[a]
             sweeps += 1
