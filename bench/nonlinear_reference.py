@@ -14,7 +14,7 @@ Models (all on the same linear tetrahedra, same mesh, same lumped body force):
              coordinates only, so 24 vectorised force evaluations give every element's 12×12
              Jacobian to ~1e-9 relative, and Newton converges quadratically.
   "invertible"
-             "polar" plus the compression limit of tissue.fem.corotational: per element
+             "polar" plus the compression limit of tissue.fem.compression_limit: per element
              V Σᵢ ψ(σ̂ᵢ) over the signed singular values σ̂ of F (the smallest negated in an
              inverted element), ψ(σ̂) = κ c² φ(σ̂/c) below c, φ(s) = (s − 1)²/(2s) down to s₀ and
              its tangent line at s₀ below, κ = COMPRESSION_STIFFNESS (λ + 2μ),
@@ -101,7 +101,7 @@ def polar_rotations(F: np.ndarray) -> np.ndarray:
 
 def compression_limit(body: Body, xe: np.ndarray):
     """The "invertible" compression limit's element forces (m, 4, 3) and energies (m,)."""
-    from tissue.fem.corotational import BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
+    from tissue.fem.compression_limit import BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS
 
     lam, mu = body.material.lame
     kappa, c, s0 = COMPRESSION_STIFFNESS * (lam + 2 * mu), COMPRESSION_LIMIT, BARRIER_END

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from tissue.errors import TissueError
 from tissue.fem import CorotationalFEM, Material
-from tissue.fem.corotational import polar_rotation, symmetric_eigen
+from tissue.fem.rotations import polar_rotation, symmetric_eigen
 from tissue.mesh import TetMesh, box
 from tissue.solver import reference as ref
 

@@ -1,4 +1,4 @@
-"""The "invertible" element (tissue.fem.corotational: the polar rotation of Irving et al. 2004 plus
+"""The "invertible" element (tissue.fem.compression_limit: the polar rotation of Irving et al. 2004 plus
 a compression limit in its diagonal frame) against references the kernels did not produce: the
 "polar" element where nothing is compressed, the numpy model of bench/nonlinear_reference.py (its
 own SVD, its energy differenced), the direction that un-inverts an element, and the static
@@ -10,7 +10,7 @@ import pytest
 from bench import stability
 from bench.nonlinear_reference import Body, internal_forces, solve_static, strain_energy
 from tissue.fem import CorotationalFEM, Material
-from tissue.fem.corotational import COMPRESSION_LIMIT
+from tissue.fem.compression_limit import COMPRESSION_LIMIT
 from tissue.mesh import beam
 from tissue.mesh.tetmesh import signed_volumes
 from tissue.solver import CGSettings, ImplicitEuler
@@ -125,7 +125,7 @@ def test_limit_is_a_barrier_with_the_quadratic_limit_as_its_expansion(backend):
     is the energy's derivative (numpy energy of tissue.fem.energy, central differences) on both
     sides of BARRIER_END and inverted, and their stiffness product (with the barrier's curvature)
     the force's."""
-    from tissue.fem.corotational import BARRIER_END, COMPRESSION_STIFFNESS
+    from tissue.fem.compression_limit import BARRIER_END, COMPRESSION_STIFFNESS
     from tissue.fem.energy import element_energies
     from tissue.fem.model import BodyModel
 

@@ -41,8 +41,9 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
-from ..fem.corotational import element_rotation, nodal_rotation
+from ..fem.corotational import element_rotation
 from ..fem.model import MODEL
+from ..fem.rotations import nodal_rotation
 from ..launch import kept_pack, replayed
 from ..mesh import cache
 from ..solver.reference import rest_compliance

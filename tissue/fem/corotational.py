@@ -3,8 +3,8 @@ stiffness products, accumulated element -> node in one of three ways.
 
 Rotations: "large" (edge frames, SOFA's), "polar" (of F = R S; for an inverted element the closest
 proper rotation, F = U Σ̂ Vᵀ with the smallest singular value negative and R = U Vᵀ: Irving et al.
-2004), "invertible" ("polar" plus a compression limit in that diagonal frame, see
-`compression_stress`) and "linear" (none).
+2004; both in tissue.fem.rotations), "invertible" ("polar" plus a compression limit in that
+diagonal frame: tissue.fem.compression_limit) and "linear" (none).
 
 Per element we keep only the rest shape's inverse edge matrix `Dm⁻¹`, the volume, the Lamé
 parameters and the current rotation `R` (20 numbers), not the 12×12 stiffness: the product `Kₑ u`
@@ -25,8 +25,10 @@ import taichi as ti
 from .. import backend
 from ..errors import TissueError
 from ..mesh import TetMesh
+from .compression_limit import compressed, compression_stress, limit_tangent_stress, limited_directions
 from .material import Material
 from .model import MODEL, BodyModel, real_numpy
+from .rotations import edge_frame, polar_rotation
 
 # The per-step work of the FEM: element rotations, the principal directions (columns, rotated
 # frame) in which each element's compression limit is active ("invertible"; zero otherwise) and
@@ -36,57 +38,15 @@ FEM_WORK = ti.types.argpack(R=ti.types.ndarray(), limited=ti.types.ndarray(), li
                             inverted=ti.types.ndarray(), buffer=ti.types.ndarray(), accumulator=ti.types.ndarray())
 
 ROTATIONS = ("large", "polar", "invertible", "linear")
-# The compression limit of "invertible": below COMPRESSION_LIMIT c, a principal stretch σ̂ of the
-# rotated deformation RᵀF = V Σ̂ Vᵀ (σ̂ negative in an inverted element) pays the extra energy
-# V ψ(σ̂), ψ(σ̂) = κ c² φ(σ̂/c) with κ = COMPRESSION_STIFFNESS (λ + 2μ) and the barrier
-# φ(s) = (s − 1)²/(2s): its expansion to second order at s = 1 is κ/2 (σ̂ − c)² (the quadratic
-# limit this replaced), and its energy and stress grow without bound as the element flattens
-# (σ̂ → 0), as a hyperelastic volumetric term's do. The quadratic limit's stress stayed finite,
-# κ c = 3 (λ + 2μ) at σ̂ = 0: under a load of the order of E (the 240-tet cantilever hanging at
-# E = 1e2 Pa) it held the clamp's corner elements at det F ≈ 0.005 at rest, and any swing flipped
-# them. Below s = BARRIER_END (nearly flat, or inverted) φ is continued by its tangent line at
-# BARRIER_END (Irving et al. 2004 clamp the stretches at a threshold the same way), so an inverted
-# element has a finite energy and a constant restoring stress, ψ'(BARRIER_END c) = −21.7 κ c: the
-# most the barrier can resist with. The barrier so spans 70 % to 95.5 % compression. At 0.3 (cap
-# −5.1 κ c) the hanging cantilever at E 1e2 Pa (ρgL/E = 9.8) rested on the cap: its clamp's
-# elements, three nodes held and one free, stood at σ̂ = 0.083 < 0.09 = the cap's stretch, and the
-# swing's extra tension pulled their free node through the clamp's plane (10 elements flipped at
-# the swing's lowest point). In the invertible material cells of bench/stability.py, steps ending
-# with an element inverted (cells starting with none; `inverted_steps`): 639 of 13,400 at 0.3
-# (E 1e2 Pa, ν ≤ 0.3: 249-297 of 1,000 at dt 1 ms, where the step's linearisation is exact enough),
-# 34 at 0.2 (20 at dt 1 ms), 9 at 0.15, 1-3 steps a cell, all at dt ≥ 0.04 s (the barrier's
-# tangent is taken at the step's start); every cell bounded in these runs. At 0.1, long before
-# (a stress growing with the inversion too), the 10 m/s floor impact at dt 0.04 s gained 700
-# energy scales to 1e31 (the contact correction crushed elements): that cell is refused now
-# (tissue.fem.regime), and its 2 ms cell is bounded at 0.15.
-# Rational, not a logarithm: float64 log is missing on some backends (Vulkan's GLSL).
-# Linear co-rotational energy alone is finite at σ̂ = 0, so a load of the order of E leaves
-# elements inverted at its minimum (the hanging cantilever at E = 1e2 Pa, ν = 0.3: 156 of 240).
-# The mean of a node's element rotations is taken as singular (no polar factor) below this
-# determinant (1 for alike rotations; 0 when, e.g., I and a half turn average).
-SINGULAR_MEAN = 1e-6
+
 # An element whose |det F| is at most this is (nearly) flat: its polar rotation is ill-defined, so it
 # takes its edge frame's ("large") rotation instead.
 FLAT_DETERMINANT = 1e-6
-COMPRESSION_LIMIT = 0.3
-COMPRESSION_STIFFNESS = 10.0
-BARRIER_END = 0.15
 ACCUMULATIONS = ("gather", "atomic", "colouring")
-
-
-def vertex_incidence(tets: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR index vertex -> (4 e + corner) of its incident element corners, sorted by element."""
-    corners = np.arange(tets.size, dtype=np.int32)
-    vertex = tets.reshape(-1)
-    order = np.argsort(vertex, kind="stable")
-    offsets = np.zeros(n_points + 1, dtype=np.int32)
-    np.cumsum(np.bincount(vertex, minlength=n_points), out=offsets[1:])
-    return offsets, corners[order]
 
 
 def colour_elements(tets: np.ndarray, n_points: int) -> list[np.ndarray]:
     """Greedy colouring: elements of one colour share no node (so need no atomics)."""
-    offsets, corner_ids = vertex_incidence(tets, n_points)
     colour = np.full(len(tets), -1, dtype=np.int64)
     node_colours = [set() for _ in range(n_points)]
     for e, nodes in enumerate(tets):
@@ -98,228 +58,6 @@ def colour_elements(tets: np.ndarray, n_points: int) -> list[np.ndarray]:
         for v in nodes:
             node_colours[v].add(c)
     return [np.flatnonzero(colour == c).astype(np.int32) for c in range(colour.max() + 1)]
-
-
-@ti.func
-def edge_frame(a, b, c):
-    """Orthonormal frame (columns) of a triangle: x along ab, z normal, as SOFA's "large"."""
-    ex = (b - a).normalized()
-    ez = ex.cross(c - a).normalized()
-    ey = ez.cross(ex)
-    return ti.Matrix.cols([ex, ey, ez])
-
-
-@ti.func
-def symmetric_eigen(A):
-    """Eigenvalues (a vector) and orthonormal eigenvectors (columns) of a symmetric 3×3 matrix by
-    cyclic Jacobi rotations: square roots only, to round-off in a few sweeps. Each rotation zeroes
-    the (0, 1) entry, updating only the entries it changes (Numerical Recipes' `jacobi`), then
-    relabels the axes cyclically (new a = old a + 1): one rotation's code, in a runtime loop, visits
-    the pairs (0, 1), (1, 2), (2, 0) in turn and is back in the original labels after every third.
-    This is inlined in many kernels; unrolled over the three pairs, with each rotation as full 3×3
-    products, it was 5× the code."""
-    D, V = A, ti.Matrix.identity(float, 3)
-    for rotation in range(3 * 12):
-        if rotation % 3 == 0:
-            off = D[0, 1] ** 2 + D[0, 2] ** 2 + D[1, 2] ** 2
-            if off <= 1e-32 * D.norm_sqr():
-                break
-        if D[0, 1] != 0.0:
-            theta = (D[1, 1] - D[0, 0]) / (2.0 * D[0, 1])
-            t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            c = 1.0 / ti.sqrt(t * t + 1.0)
-            s = t * c
-            D[0, 0] -= t * D[0, 1]
-            D[1, 1] += t * D[0, 1]
-            D[0, 1], D[1, 0] = 0.0, 0.0
-            d20, d21 = c * D[2, 0] - s * D[2, 1], s * D[2, 0] + c * D[2, 1]
-            D[2, 0], D[0, 2], D[2, 1], D[1, 2] = d20, d20, d21, d21
-            for i in ti.static(range(3)):
-                v0, v1 = c * V[i, 0] - s * V[i, 1], s * V[i, 0] + c * V[i, 1]
-                V[i, 0], V[i, 1] = v0, v1
-        D = ti.Matrix([[D[1, 1], D[1, 2], D[1, 0]], [D[2, 1], D[2, 2], D[2, 0]], [D[0, 1], D[0, 2], D[0, 0]]])
-        V = ti.Matrix.cols([ti.Vector([V[0, 1], V[1, 1], V[2, 1]]), ti.Vector([V[0, 2], V[1, 2], V[2, 2]]),
-                            ti.Vector([V[0, 0], V[1, 0], V[2, 0]])])
-    return ti.Vector([D[0, 0], D[1, 1], D[2, 2]]), V
-
-
-@ti.func
-def compressed(S):
-    """Whether the symmetric S has an eigenvalue below the compression limit c: S − cI is not
-    positive definite (Sylvester's leading minors), a few flops for the common case."""
-    c = COMPRESSION_LIMIT
-    a, d, f = S[0, 0] - c, S[1, 1] - c, S[2, 2] - c
-    minor2 = a * d - S[0, 1] * S[0, 1]
-    det = a * (d * f - S[1, 2] * S[1, 2]) - S[0, 1] * (S[0, 1] * f - S[1, 2] * S[0, 2]) \
-        + S[0, 2] * (S[0, 1] * S[1, 2] - d * S[0, 2])
-    return not (a > 0.0 and minor2 > 0.0 and det > 0.0)
-
-
-@ti.func
-def limit_stiffness(m: ti.template(), e):
-    """κ of the compression limit: COMPRESSION_STIFFNESS (λ + 2μ)."""
-    return COMPRESSION_STIFFNESS * (m.elastic[e][1] + 2.0 * m.elastic[e][2])
-
-
-@ti.func
-def limit_slope_curvature(kappa, value):
-    """ψ'(σ̂) and ψ''(σ̂) of the compression limit at one principal stretch σ̂ = `value` (both zero
-    at and above c): κ c φ'(s) and κ φ''(s), s = σ̂/c, with φ' = (1 − 1/s²)/2, φ'' = 1/s³ down to
-    BARRIER_END, and φ' held at its value there (φ'' = 0) below."""
-    c = COMPRESSION_LIMIT
-    s = value / c
-    slope, curvature = 0.0, 0.0
-    if s < 1.0:
-        t = ti.max(s, BARRIER_END)
-        slope = kappa * c * 0.5 * (1.0 - 1.0 / (t * t))
-        if s >= BARRIER_END:
-            curvature = kappa / (t * t * t)
-    return slope, curvature
-
-
-@ti.func
-def limit_energy(kappa, value):
-    """ψ(σ̂) = κ c² φ(σ̂/c) of the compression limit at one principal stretch (zero above c)."""
-    c = COMPRESSION_LIMIT
-    s = value / c
-    energy = 0.0
-    if s < 1.0:
-        t = ti.max(s, BARRIER_END)
-        h = s - t
-        energy = kappa * c * c * ((t - 1.0) ** 2 / (2.0 * t) + 0.5 * (1.0 - 1.0 / (t * t)) * h)
-    return energy
-
-
-@ti.func
-def limited_directions(m: ti.template(), e, S):
-    """The eigenvectors of the symmetric S whose eigenvalue is below the limit, as columns (the
-    others zero), and the limit's curvature ψ'' along each."""
-    values, V = symmetric_eigen(S)
-    D = ti.Matrix.zero(float, 3, 3)
-    k = ti.Vector([0.0, 0.0, 0.0])
-    kappa = limit_stiffness(m, e)
-    for i in ti.static(range(3)):
-        if values[i] < COMPRESSION_LIMIT:
-            _, k[i] = limit_slope_curvature(kappa, values[i])
-            for j in ti.static(range(3)):
-                D[j, i] = V[j, i]
-    return D, k
-
-
-@ti.func
-def limit_tangent_stress(m: ti.template(), w: ti.template(), e, G):
-    """The compression limit's tangent: Σᵢ ψ''(σ̂ᵢ) (dᵢᵀ ε dᵢ) dᵢ dᵢᵀ over its active directions dᵢ
-    (the directions held fixed over the step, as the rotation is)."""
-    D = w.limited[e]
-    P = ti.Matrix.zero(float, 3, 3)
-    if D.norm_sqr() > 0.0:
-        k = w.limit_curvature[e]
-        eps = 0.5 * (G + G.transpose())
-        for i in ti.static(range(3)):
-            d = ti.Vector([D[0, i], D[1, i], D[2, i]])
-            P += k[i] * d.dot(eps @ d) * d.outer_product(d)
-    return P
-
-
-@ti.func
-def compression_stress(m: ti.template(), e, S):
-    """The compression limit's stress in the rotated frame, Σᵢ ψ'(σ̂ᵢ) vᵢ vᵢᵀ, for
-    S = sym(RᵀF) = V Σ̂ Vᵀ: the derivative of V Σᵢ ψ(σ̂ᵢ), whose gradient in F is
-    R V diag(ψ'(σ̂ᵢ)) Vᵀ (Irving et al. 2004, P = U P̂(Σ̂) Vᵀ). Pushes an inverted element's
-    negative σ̂ back up through zero."""
-    kappa = limit_stiffness(m, e)
-    values, V = symmetric_eigen(S)
-    P = ti.Matrix.zero(float, 3, 3)
-    for i in ti.static(range(3)):
-        vi = ti.Vector([V[0, i], V[1, i], V[2, i]])
-        slope, _ = limit_slope_curvature(kappa, values[i])
-        P += slope * vi.outer_product(vi)
-    return P
-
-
-@ti.func
-def polar_rotation(F, tol):
-    """Rotation of the polar decomposition F = R S by Higham's scaled Newton iteration.
-
-    The scaling ζ = sqrt(‖X⁻¹‖/‖X‖) (Frobenius) needs only a square root, which every backend has
-    in float64 (Vulkan's GLSL has no 64-bit pow, exp or trigonometry). An inverted element
-    (det F < 0) gets the closest proper rotation: the orthogonal factor is reflected along the
-    eigenvector of S with the smallest eigenvalue (Irving et al. 2004), found by Jacobi rotations
-    (exact to round-off however close the eigenvalues; inverse iteration converged too slowly for
-    an element mirrored whole, whose stretches are all near 1).
-
-    Near orthogonality (a tissue's elements under moderate strain) Newton–Schulz gets there first,
-    by products alone (`newton_schulz`; the scaled iteration's inverse, norms and square roots
-    wait on one another): the same factor to round-off.
-    """
-    X, done = newton_schulz(F, tol)
-    for _ in range(30):
-        if done:
-            break
-        Xinv_t = X.inverse().transpose()
-        zeta = ti.sqrt(Xinv_t.norm() / X.norm())
-        Y = 0.5 * (zeta * X + Xinv_t / zeta)
-        change = (Y - X).norm()
-        X = Y
-        done = change <= tol
-    if F.determinant() < 0:
-        S = X.transpose() @ F
-        values, V = symmetric_eigen(0.5 * (S + S.transpose()))
-        # The column of the smallest eigenvalue, chosen among static indices: a runtime index
-        # into a local matrix breaks the SPIR-V (Vulkan) compile.
-        smallest, v = values[0], ti.Vector([V[0, 0], V[1, 0], V[2, 0]])
-        for i in ti.static(range(1, 3)):
-            if values[i] < smallest:
-                smallest, v = values[i], ti.Vector([V[0, i], V[1, i], V[2, i]])
-        X = X @ (ti.Matrix.identity(float, 3) - 2.0 * v.outer_product(v))
-    return X
-
-
-@ti.func
-def nodal_rotation(Re: ti.template(), valence: ti.template(), incidence: ti.template(), v, tol):
-    """The orthonormalised average of the rotations of the elements around node v: the rotation
-    of the polar decomposition of their mean X₀. Newton–Schulz, X ← X (3I - XᵀX) / 2, converges
-    to it quadratically when the rotations are alike (X₀ nearly orthogonal: a few 3×3 products);
-    otherwise (rotations far apart, or det X₀ ≤ 0) the scaled Newton iteration of the FEM. Where
-    the rotations cancel in the mean (a half turned over against the other: X₀ singular, and its
-    polar factor undefined) the node takes its first element's rotation; a node of no element the
-    identity."""
-    X = ti.Matrix.zero(float, 3, 3)
-    for k in range(valence[v]):
-        X += Re[incidence[v, k] // 4]
-    S = X / ti.max(valence[v], 1)
-    X = S
-    done = False
-    if ti.abs(S.determinant()) <= SINGULAR_MEAN:
-        X = ti.Matrix.identity(float, 3)
-        if valence[v] > 0:
-            X = Re[incidence[v, 0] // 4]
-        done = True
-    elif S.determinant() > 0.0:
-        X, done = newton_schulz(S, tol)
-    if not done:
-        X = polar_rotation(S, tol)
-    return X
-
-
-@ti.func
-def newton_schulz(F, tol):
-    """(X, converged): F's orthogonal polar factor by Newton–Schulz, X ← X (3I − XᵀX) / 2, which
-    converges quadratically where F is nearly orthogonal (‖FᵀF − I‖ ≤ 0.5: stretches within about
-    30 % of 1) by 3×3 products alone; farther away not converged, X = F."""
-    X, done = F, False
-    for _ in range(12):
-        E = X.transpose() @ X - ti.Matrix.identity(float, 3)
-        e = E.norm()
-        if e > 0.5:                             # too far from orthogonal for Newton–Schulz
-            break
-        X = X - 0.5 * (X @ E)
-        if e <= tol:
-            done = True
-            break
-    return X, done
 
 
 # ---- per-element mathematics, over a model's argpack `m` (tissue.fem.model) and the FEM's work `w`
@@ -396,7 +134,7 @@ def stiffness_product(m: ti.template(), w: ti.template(), e, p: ti.template(), r
     G = R.transpose() @ deformation_gradient(m, e, p)
     H = nodal_forces(m, R, e, G)
     if ti.static(rotation == "invertible"):
-        H -= m.elastic[e][0] * R @ limit_tangent_stress(m, w, e, G) @ m.Dm_inv[e].transpose()
+        H -= m.elastic[e][0] * R @ limit_tangent_stress(w, e, G) @ m.Dm_inv[e].transpose()
     return H
 
 

@@ -7,7 +7,7 @@ stretches.
 For "polar" the linear co-rotational energy is a true potential of its forces: with R the polar
 rotation of F and ε = RᵀF − I (symmetric), an element stores V (μ ε:ε + λ/2 (tr ε)²), which is
 ½ uᵀ Kₑ u for the local displacement u = Rᵀx − X. "invertible" adds its compression limit
-V Σ ψ(σ̂ᵢ) over the signed principal stretches, ψ the barrier of tissue.fem.corotational. "large"
+V Σ ψ(σ̂ᵢ) over the signed principal stretches, ψ the barrier of tissue.fem.compression_limit. "large"
 (edge frames) has no energy of its own, its forces are not a gradient: the polar energy is the
 one it approximates, and the one used for it here. "linear" is ε = sym(F) − I.
 """
@@ -15,9 +15,10 @@ one it approximates, and the one used for it here. "linear" is ε = sym(F) − I
 import numpy as np
 import taichi as ti
 
-from .corotational import (BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, FLAT_DETERMINANT, compressed,
-                           deformation_gradient, limit_energy, newton_schulz, symmetric_eigen)
+from .compression_limit import BARRIER_END, COMPRESSION_LIMIT, COMPRESSION_STIFFNESS, compressed, limit_energy
+from .corotational import FLAT_DETERMINANT, deformation_gradient
 from .model import BodyModel
+from .rotations import newton_schulz, symmetric_eigen
 
 
 def deformation_gradients(model: BodyModel, x: np.ndarray) -> np.ndarray:
@@ -105,7 +106,7 @@ def element_energy_at_rotations(m: ti.template(), w: ti.template(), e, x: ti.tem
 @ti.func
 def polar_energy(m: ti.template(), e, F, rotation: ti.template()):
     """Element e's co-rotational energy at F, its rotation the polar one: σᵢ² by Jacobi rotations on
-    FᵀF (tissue.fem.corotational.symmetric_eigen), the smallest σ negative where det F < 0."""
+    FᵀF (tissue.fem.rotations.symmetric_eigen), the smallest σ negative where det F < 0."""
     volume, lam, mu = m.elastic[e][0], m.elastic[e][1], m.elastic[e][2]
     squares, _ = symmetric_eigen(F.transpose() @ F)
     s = ti.sqrt(ti.max(squares, 0.0))

@@ -380,7 +380,7 @@ class ImplicitEuler:
 
     def nodal_rotations(self, tol: float):
         """The multigrid's nodal rotations of the last step (an ndarray of the node capacity:
-        tissue.fem.corotational.nodal_rotation of the FEM's element rotations at `tol`) while they
+        tissue.fem.rotations.nodal_rotation of the FEM's element rotations at `tol`) while they
         are those of the element rotations as they are now; else None."""
         return self.multigrid.nodal_rotations(tol) if self.multigrid is not None else None
 

@@ -30,7 +30,7 @@ import scipy.sparse.linalg as spla
 import taichi as ti
 
 from .. import backend
-from ..fem.corotational import nodal_rotation
+from ..fem.rotations import nodal_rotation
 from ..fem.model import real_numpy
 from ..mesh import box
 from ..mesh.embedding import EmbeddedSurface
