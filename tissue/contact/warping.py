@@ -131,15 +131,17 @@ def _rotations_and_hr(k: ti.template(), o_node, nnz, serial: ti.template()):
 
 
 @ti.func
-def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, Qb: ti.template(), o_count, o_ptr, o_touched,
-                             n_active, d, ld, inverse_mass, gather, serial: ti.template()):
-    """The rows' translations H T, and with gather (1; 0: Qt holds it already) Q among the touched
-    dofs gathered once into Qt from q0 (ld × ld, row-major; a free body's factor adds the
-    translation's block): a compact copy stays in cache where scattered reads of the whole Q (3n ×
+def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, Qb: ti.template(), ld, gather,
+                             serial: ti.template()):
+    """The rows' translations H T, and with gather (1; 0: Qt holds it already) Q among the d = 3
+    sizes[N_TOUCHED] touched dofs gathered once into Qt from q0 (ld × ld, row-major; a free body's
+    factor, ld = d + 3, adds the translation's block): a compact copy stays in cache where scattered reads of the whole Q (3n ×
     3n, 10 MB for the liver) miss it. With sizes[LD_BEFORE] > 0, Qb from sizes[Q_BEFORE] holds last
     step's gather (that row length), and `before` each touched node's index among its nodes (-1:
     new): the entries between nodes touched both times are copied from there (the same numbers, in
     cache: the touched nodes change a few at a time), only the others read from the whole Q."""
+    n_active, d, inverse_mass = k.sizes[N_ACTIVE], 3 * k.sizes[N_TOUCHED], k.reals[INVERSE_MASS]
+    o_count, o_ptr, _, _, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], k.sizes[NNZ])
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         k.ht[i] = _row_translation(k, o_count, o_ptr, i)
@@ -180,8 +182,7 @@ def _assemble(k: WARP, W: ti.types.ndarray(), serial: ti.template()):
     o_count, o_ptr, o_node, o_local, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], nnz)
     _rotations_and_hr(k, o_node, nnz, serial)
     d = 3 * k.sizes[N_TOUCHED]
-    _translations_and_gather(k, k.Qt, 0, k.Qt, o_count, o_ptr, o_touched, n_active, d, d, inverse_mass,
-                             k.sizes[GATHER], serial)
+    _translations_and_gather(k, k.Qt, 0, k.Qt, d, k.sizes[GATHER], serial)
     # U(block row i, touched dof m) (3 rows) = Σ_blocks Hr(i, block) Q(block's dofs, m); m runs
     # fastest, so neighbouring threads read neighbouring entries of a row.
     ti.loop_config(serialize=serial)
@@ -226,7 +227,7 @@ def _factor(k: WARP, P: ti.types.ndarray(), Q: ti.types.ndarray(), Qb: ti.types.
     _rotations_and_hr(k, o_node, nnz, serial)
     d = 3 * k.sizes[N_TOUCHED]
     ld = d + (3 if inverse_mass != 0.0 else 0)      # Q's row length
-    _translations_and_gather(k, Q, q0, Qb, o_count, o_ptr, o_touched, n_active, d, ld, inverse_mass, 1, serial)
+    _translations_and_gather(k, Q, q0, Qb, ld, 1, serial)
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         count = k.jds[o_count + i]
