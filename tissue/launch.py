@@ -169,8 +169,8 @@ def _read_return(primal, context, kind, i):
 
 def kept_pack(kept, kind, arrays):
     """(argpack, its arrays): `kept` (such a pair, or None) when `arrays` holds the same objects,
-    else `kind(**arrays)` anew. Building an argpack costs Taichi more than a launch, and launches over a
-    kept one replay. The arrays are compared by identity, one by one in C (ndarrays have no value
+    else `kind(**arrays)` anew. Building an argpack costs Taichi more than a replayed launch, and
+    launches over a kept one replay. The arrays are compared by identity, one by one in C (ndarrays have no value
     equality): a tuple of their ids built in Python cost more, at every launch.
     `arrays`: {member: array}, or a tuple of the arrays in the order of `kind`'s members (cheaper
     to build, for a launch made every step)."""

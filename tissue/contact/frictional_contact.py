@@ -76,8 +76,8 @@ AUTO_HORIZON = 100                # AUTO_SWEEPS, then Newton (Anderson's sweeps 
                                   # liver_press's problems that reach the tolerance within 65 sweeps are
                                   # 30-500× above it at sweep 32, and Newton's step costs tens of sweeps)
 AUTO_LARGE, AUTO_PHASE_LARGE = 1000, 4  # ... phases of 4 sweeps from 1,000 contacts on, where a sweep
-                                        # costs a large part of a step (the press plate's 1,155 contacts,
-                                        # factored), the rate's horizon AUTO_SWEEPS
+                                        # is costly (over the factors of the press plate's 1,155 contacts),
+                                        # the rate's horizon AUTO_SWEEPS
 AUTO_SMALL, AUTO_PHASE_SMALL, AUTO_SWEEPS_SMALL = 32, 64, 256   # ... and below 32 contacts phases of 64,
                                         # at most 256 sweeps (the rate's horizon): there a sweep costs a
                                         # small fraction of Newton's host step (the floor scene's 12 contacts:

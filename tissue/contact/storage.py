@@ -125,7 +125,7 @@ class Storage:
 
     def pack(self, name, kind, **arrays):
         """The argpack `kind` over `arrays`, kept under `name` and built again only when one of
-        them is another object (after a growth): building one costs Taichi more than a launch,
-        and launches over a kept one replay (tissue.launch.kept_pack)."""
+        them is another object (after a growth): building one costs Taichi more than a replayed
+        launch, and launches over a kept one replay (tissue.launch.kept_pack)."""
         kept = self._packs[name] = kept_pack(self._packs.get(name), kind, arrays)
         return kept[0]

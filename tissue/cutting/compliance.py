@@ -26,8 +26,8 @@ passes `fold_rank`. Float64 only: single precision is unstable for these inversi
 
 The three operations (gather, factor, fold) are Taichi kernels over the ndarrays; on the CPU they
 run instead as numpy's BLAS on the same ndarrays' memory (tissue.launch.host_view), `blas=False`
-forcing the kernels (the tests check both): one BLAS thread folds and updates several times
-faster than the kernels (docs/performance.md, "Cutting"; bench.cutting).
+forcing the kernels (the tests check both): one BLAS thread folds several times faster than
+the kernels, and updates faster (docs/performance.md, "Cutting"; bench.cutting).
 The fold updates C's upper triangle a strip of rows at a time, in place by the BLAS's dgemm
 (tissue.cutting.blas: no temporary product), and mirrors it, so C stays exactly symmetric as the
 kernel keeps it. The mirror is most of an eager fold's time (at rank 12-48 it costs about what
