@@ -121,16 +121,8 @@ def local_solve(A, b, mu):
 def contact_error2(r, u, mu):
     """Squared natural-map error of one contact: |r - P_K(r - û)|^2."""
     x = r - u
-    ut = ti.Vector([u[1], u[2]]).norm()
-    x[0] -= mu * ut
-    xn, nt = x[0], ti.Vector([x[1], x[2]]).norm()
-    p = ti.Vector([0.0, 0.0, 0.0])
-    if nt <= mu * xn and xn >= 0.0:                # (xn >= 0: for mu = 0, nt = 0)
-        p = x
-    elif mu * nt > -xn:                             # neither inside K nor in its polar cone
-        a = (xn + mu * nt) / (1.0 + mu * mu)
-        p = ti.Vector([a, mu * a * x[1] / nt, mu * a * x[2] / nt])
-    e = r - p
+    x[0] -= mu * ti.Vector([u[1], u[2]]).norm()
+    e = r - project_contact(x, mu)
     return e.dot(e)
 
 
