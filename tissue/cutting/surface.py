@@ -131,7 +131,7 @@ class CutSurface:
         ids = np.arange(len(self)) if triangles is None else np.asarray(triangles)
         if len(ids) == 0:
             return np.full(len(points), np.inf), np.ones(len(points)), np.full(len(points), -1)
-        # Coordinates first, (3, points, triangles): sums over a last axis of 3 cost ~20x more.
+        # Coordinates first, (3, points, triangles): sums over a last axis of 3 cost many times more.
         corners = self.triangles[ids].transpose(1, 2, 0)[:, :, None, :]     # (corner, 3, 1, m)
         edges = self._edges[ids].transpose(1, 2, 0)[:, :, None, :]
         inward = self._inward[ids].transpose(1, 2, 0)[:, :, None, :]
