@@ -82,7 +82,7 @@ def run_variant(compliance: str, overrides: list[str]) -> dict:
             first, first_element = round(sim.time, 4), int(d.argmin())
     return {"first_inversion_s": first, "first_inverted_element": first_element, "least_det_f": least,
             "det_f_at_end": float(d.min()), "inverted_at_end": int((d <= 0).sum()),
-            "steps": sim.step_count}
+            "dt": sim.scene.dt, "steps": sim.step_count}
 
 
 def the_node(body, element: int) -> int:
@@ -138,7 +138,7 @@ def diagnose(element: int) -> dict:
 
     stage.step = step
     out = {"element": element, "element_corners": tets[element].tolist(), "node": node,
-           "elements_around_node": around.tolist(),
+           "elements_around_node": around.tolist(), "n_elements_around_node": len(around),
            "rest_heights_m": opposite_heights(liver, element), "steps": []}
     for _ in range(sim.scene.steps):
         sim.step()
