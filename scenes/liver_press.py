@@ -85,7 +85,9 @@ class LiverPress(Scene):
         shape="sphere", centre=PROBE_START, radius=PROBE_RADIUS, keyframes=_probe_path(), color="#7f8c9c"))
     contact: Contact = field(default_factory=abdominal_contact)
     solver: Solver = field(default_factory=abdominal_solver)
-    # The figure at t = 1.6 s (4 cm into the push): beyond, the thin lobe's coarse tetrahedra are
-    # crushed between probe and stomach and the smooth surface drawn over them wrinkles.
+    # The figure at t = 1.6 s (4 cm into the push): beyond, the lobe's tip squeezed between probe
+    # and stomach folds further than compliance warping represents (its elements turn apart), the
+    # correction crushes its tetrahedra (inverted from 2.16 s: bench/press_inversion.py) and the
+    # smooth surface drawn over them wrinkles.
     render: Render = field(default_factory=lambda: Render(
         every=2, figure=0.5, title="Liver pushed by a probe against the ribs and stomach"))
