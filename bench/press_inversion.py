@@ -15,7 +15,7 @@ The scene is run once to find the first element to invert and the interior node 
     A the step's own matrix (tissue.contact.compliance.ExactCompliance): its relative error over
     the body, and the least det F had the exact one been applied;
   - the largest angle between two of the rotations of the node's elements at the step's start
-    (what the warping's nodal rotation averages, tissue.contact.compliance).
+    (what the warping's nodal rotation averages, tissue.contact.warping).
 
 Then the scene's variants, each run to its end: the compliance (warped, exact) and dt (40, 20, 10,
 5 ms), without soft–soft contact (the stomach not felt), frictionless, with the "invertible"

@@ -417,7 +417,12 @@ class ImplicitEuler:
                    f"linear co-rotational elements have no inversion barrier, so the material may be too soft "
                    f"for its load ({load}) or dt too large ({step}); rotation 'invertible' adds one, and "
                    "'polar' rotations recover better than 'large'")
-            warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; {why}", stacklevel=3)
+            # Counted at the step's start: the last step's contact correction may have folded them, not
+            # the free motion (liver_press's lobe: docs/performance.md, "run to its end").
+            contact = ("; or, in contact, the last correction folded them: compliance warping assumes the elements "
+                       "around a node turned alike (contact.compliance=exact, or a smaller dt)")
+            warnings.warn(f"{int(inverted)} elements are inverted (det F ≤ 0) at this step; {why}{contact}",
+                          stacklevel=3)
         # A non-finite right-hand side (NaN positions, or NaN velocities at fixed nodes) stops the CG
         # at once with dv = 0, so the velocities alone would not show it.
         if nonfinite > 0 or not (math.isfinite(rhs2) and math.isfinite(res2)):
