@@ -115,7 +115,8 @@ def versus(other: str, scenes: list[str], rounds: int, info: dict, out: str) -> 
         return {name: run_in(checkout, name) for name in scenes}
 
     def describe(rows: dict) -> str:
-        return "  ".join(f"{name} {r['cpu_ms_per_step']:.2f} ms ({r['rejections']} rejected)" for name, r in rows.items())
+        return "  ".join(f"{name} {r['cpu_ms_per_step']:.2f} ms ({r['rejections']} rejected)"
+                         for name, r in rows.items())
 
     load_before = os.getloadavg()
     other, runs = alternate_with_commit(other, rounds, measure_all, describe, "step_control_versus_")
@@ -128,7 +129,8 @@ def versus(other: str, scenes: list[str], rounds: int, info: dict, out: str) -> 
         row["steps"] = runs["this"][0][name]["steps"]
         rows[name] = row
         print(f"{name:>12}: CPU {row['this']['cpu_ms_per_step']:.2f} ms a step against {other}'s "
-              f"{row['other']['cpu_ms_per_step']:.2f} ({row['ratio_cpu']:.2f}×), rejections {row['this']['rejections']} "
+              f"{row['other']['cpu_ms_per_step']:.2f} ({row['ratio_cpu']:.2f}×), "
+              f"rejections {row['this']['rejections']} "
               f"and {row['other']['rejections']}, same state: {row['same_state']}")
     write_results(out, {"machine": info, "other": other, "rounds": rounds,
                         "load_average_before_after": [load_before[0], os.getloadavg()[0]], "rows": rows, "runs": runs})
