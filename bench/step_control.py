@@ -16,16 +16,29 @@ solver runs serially, a launch of its own at each otherwise.
                                               # (tissue.solver.energy_budget): step_control_budget.json,
                                               # "none" the budget off, "energy" on (both checked)
     python -m bench.step_control --budget --out NAME     # the same into bench/results/NAME.json
+    python -m bench.step_control --versus COMMIT [--rounds 3] [--scenes organs] [--out NAME]
+
+--versus COMMIT: each scene's whole run as `tissue run` steps it (the scene's settings, its
+duration's steps), by this checkout and by COMMIT (a temporary git worktree), in subprocesses
+alternately for --rounds rounds: the CPU ms of all its steps after the first (which compiles)
+over their number, where a rejected step's redoing counts (the median above leaves it out), the
+rejections, and whether the two runs end in the same state bit for bit.
+Writes bench/results/step_control_versus.json (or NAME.json).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from bench.common import start_on_cpu, write_results
+from bench.common import alternate_with_commit, start_on_cpu, write_results
 
 SCENES = ("beam", "liver", "liver_press")
 SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_control=energy", "solver.energy_budget=false"]}
@@ -64,16 +77,79 @@ def measure(name: str, rounds: int, steps: int, settings: dict = SETTINGS) -> di
     return row
 
 
+# Runs inside a checkout: the API used here is common to the commits compared.
+CHILD = r"""
+import hashlib, json, sys, time
+import numpy as np
+import scenes
+from tissue.options import validate
+from tissue.simulation import Simulation
+sim = Simulation(validate(scenes.load(sys.argv[1])()), arch="cpu")
+steps = round(sim.scene.duration / sim.scene.dt)
+sim.step()
+started = time.process_time()
+for _ in range(steps - 1):
+    sim.step()
+cpu_ms = 1e3 * (time.process_time() - started) / (steps - 1)
+state = hashlib.sha256()
+for body in sim.state().values():
+    for array in body.values():
+        state.update(np.ascontiguousarray(array).tobytes())
+rejections = int(np.sum(sim.stats.history.get("energy_rejections", [])))
+print("RESULT " + json.dumps(dict(steps=steps, cpu_ms_per_step=cpu_ms, rejections=rejections,
+                                  state=state.hexdigest())))
+"""
+
+
+def run_in(checkout: Path, scene: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    done = subprocess.run([sys.executable, "-c", CHILD, scene], cwd=checkout, env=env, capture_output=True, text=True)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if done.returncode != 0 or not lines:
+        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
+    return json.loads(lines[0][len("RESULT "):])
+
+
+def versus(other: str, scenes: list[str], rounds: int, info: dict, out: str) -> None:
+    def measure_all(checkout: Path) -> dict:
+        return {name: run_in(checkout, name) for name in scenes}
+
+    def describe(rows: dict) -> str:
+        return "  ".join(f"{name} {r['cpu_ms_per_step']:.2f} ms ({r['rejections']} rejected)"
+                         for name, r in rows.items())
+
+    load_before = os.getloadavg()
+    other, runs = alternate_with_commit(other, rounds, measure_all, describe, "step_control_versus_")
+    rows = {}
+    for name in scenes:
+        row = {side: {"cpu_ms_per_step": float(np.median([r[name]["cpu_ms_per_step"] for r in runs[side]])),
+                      "rejections": runs[side][0][name]["rejections"]} for side in runs}
+        row["ratio_cpu"] = row["this"]["cpu_ms_per_step"] / row["other"]["cpu_ms_per_step"]
+        row["same_state"] = len({r[name]["state"] for side in runs for r in runs[side]}) == 1
+        row["steps"] = runs["this"][0][name]["steps"]
+        rows[name] = row
+        print(f"{name:>12}: CPU {row['this']['cpu_ms_per_step']:.2f} ms a step against {other}'s "
+              f"{row['other']['cpu_ms_per_step']:.2f} ({row['ratio_cpu']:.2f}×), "
+              f"rejections {row['this']['rejections']} "
+              f"and {row['other']['rejections']}, same state: {row['same_state']}")
+    write_results(out, {"machine": info, "other": other, "rounds": rounds,
+                        "load_average_before_after": [load_before[0], os.getloadavg()[0]], "rows": rows, "runs": runs})
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     parser.add_argument("--budget", action="store_true", help="the energy budget off and on, both with the check")
+    parser.add_argument("--versus", metavar="COMMIT", help="whole runs of the scenes, alternately with COMMIT's")
     parser.add_argument("--out", help="the results' name under bench/results (default: step_control_budget with "
-                        "--budget, else step_control)")
+                        "--budget, step_control_versus with --versus, else step_control)")
     args = parser.parse_args(argv)
     info = start_on_cpu()
+    if args.versus:
+        versus(args.versus, args.scenes, args.rounds, info, args.out or "step_control_versus")
+        return
     rows = []
     for name in args.scenes:
         row = measure(name, args.rounds, args.steps, BUDGET if args.budget else SETTINGS)

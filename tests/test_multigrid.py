@@ -216,3 +216,33 @@ def test_nodal_rotations_are_shared_while_current(solver):
     assert sim.nodal_rotations(tol) is not None
     sim.multigrid.rebuild()
     assert sim.nodal_rotations(tol) is None
+
+
+def test_a_return_to_an_earlier_dt_reuses_its_set_up(backend, monkeypatch):
+    """The energy check takes a rejected step as two of dt/2 and goes back to dt
+    (tissue.solver.step_control): the multigrid keeps each dt's coarse inverse and Chebyshev
+    coefficients (Multigrid.retune), so going back and forth makes the rest matrix once per dt, and
+    keeps the last step's nodal rotations. Reference: a solver built at each dt, whose set-up equals
+    the live one's bit for bit, as does its step from the same state."""
+    from tissue.solver import implicit_euler
+
+    sim = make_solver(execution="serial", preconditioner="multigrid")
+    made = []
+    original = implicit_euler.rest_matrix
+    monkeypatch.setattr(implicit_euler, "rest_matrix", lambda *args: made.append(args[2]) or original(*args))
+    dt = STEP["dt"]
+    for h in (dt / 2, dt, dt / 2, dt):
+        sim.set_parameters(dt=h)
+        fresh = make_solver(execution="serial", preconditioner="multigrid", **{**STEP, "dt": h})
+        for name in ("coarse_inverse", "coefficients"):
+            assert np.array_equal(sim.multigrid.arrays[name].to_numpy(), fresh.multigrid.arrays[name].to_numpy())
+        x0, v0 = standard_state(1)
+        for s in (sim, fresh):
+            s.set_state(x0, v0)
+            s.step()
+        assert np.array_equal(sim.positions(), fresh.positions())
+    assert made.count(dt / 2) == 1 + 2 and made.count(dt) == 2     # the live solver's one, the fresh ones'
+    tol = sim.fem.rotation_tolerance
+    shared = sim.nodal_rotations(tol)
+    sim.set_parameters(dt=dt / 2)           # the element rotations unchanged: their nodal ones still current
+    assert shared is not None and sim.nodal_rotations(tol) is shared

@@ -2,18 +2,22 @@
 (tissue.fem.energy): the energy against the numpy reference of bench/nonlinear_reference.py, the
 accounting of gravity and applied forces against free fall in closed form, a rejected step against
 two half steps taken by hand, and the hanging soft beam that one linearisation per step drives up
-in energy and the check keeps bounded; the check's energy kernel against that numpy energy."""
+in energy and the check keeps bounded; the check's energy kernel against that numpy energy; and a
+swinging step's gain against the balance of a step linearised once and against steps that do not
+leave out the rotations' derivative."""
 
 import numpy as np
 import pytest
 import scipy.linalg
 
 from bench import stability
-from bench.nonlinear_reference import Body, strain_energy
+from bench.free_motion_energy import Reference
+from bench.nonlinear_reference import Body, strain_energy, tangent
 from tissue.errors import TissueError
 from tissue.fem import CorotationalFEM, Material
 from tissue.fem.energy import deformation_gradients, elastic_energy, element_energies
 from tissue.fem.model import BodyModel
+from tissue.solver import CGSettings, ImplicitEuler
 from tissue.solver.step_control import EnergyControl
 
 MATERIAL = Material(1e4, 0.45, 1000.0)
@@ -248,3 +252,42 @@ def test_checked_serial_step_matches_separate_evaluations(backend, rotation):
     assert np.abs(fused - apart).max() <= 1e-12 * np.abs(apart).max()
     # to 1e-12 of the energies in play (the rest state's elastic energy is round-off)
     assert np.abs(fused_energies - apart_energies).max() <= 1e-12 * np.abs(apart_energies).max()
+
+
+def test_a_swinging_step_gains_only_by_the_linearisation(backend):
+    """Why a free body's step gains energy (the organs' colon: bench/free_motion_energy.py), on the
+    cantilever hanging under its weight (E 1e4 Pa, ν 0.3, dt 0.02 s, Rayleigh 0.1 / 0.02, the
+    colon's), whose 5th step from rest gains 1.9e-3 of the energy in play. References in numpy and
+    scipy (bench.free_motion_energy.Reference): the solver's step (CG to 1e-12) changes the energy
+    by exactly the balance of a step linearised once, −½ dvᵀM dv − ½ h² v₁ᵀK v₁ − h v₁ᵀB v₁ + N,
+    N the co-rotational energy's departure from the step's quadratic model: N is larger than all
+    the dissipation. From the same start, the same linearised step with the exact tangent (the
+    rotations' derivative, which K leaves out) loses energy, as do backward Euler solved by Newton
+    and two steps of dt/2: the gain is the tangent's, not CG's, the held nodes' or backward Euler's."""
+    dt, damping = 0.02, dict(rayleigh_mass=0.1, rayleigh_stiffness=0.02)
+    material = Material(1e4, 0.3, 1000.0)
+    mesh = stability._mesh()
+    x, v, fixed = stability.initial_state(dict(case="material"), mesh)
+    solver = ImplicitEuler(CorotationalFEM(mesh, material, rotation="polar"), dt, gravity=stability.GRAVITY,
+                           cg=CGSettings(max_iterations=500, tolerance=1e-12), fixed=fixed, **damping)
+    solver.set_state(x, v)
+    reference = Reference(mesh, material, fixed, stability.GRAVITY, **damping)
+    for _ in range(4):
+        solver.step()
+    x0, v0 = solver.positions(), solver.velocities()
+    solver.step()
+    x1, v1 = solver.positions(), solver.velocities()
+    e0 = reference.energy(x0, v0)
+    gain = reference.energy(x1, v1) - e0
+    scale = max(reference.inner(x0, v0), reference.inner(x1, v1))
+    assert gain > 1e-3 * scale
+    balance = reference.balance(x0, v0, dt)
+    dissipation = -(balance["mass"] + balance["stiffness"] + balance["damping"])
+    assert gain == pytest.approx(balance["N"] - dissipation, abs=1e-9 * scale)
+    assert balance["scipy"] == pytest.approx(gain, abs=1e-9 * scale)
+    assert balance["N"] > dissipation > 0
+    exact = reference.step(x0, v0, dt, tangent(reference.nl, "polar", x0))
+    assert reference.energy(*exact[:2]) < e0
+    assert reference.energy(*reference.newton(x0, v0, dt)[:2]) < e0
+    half = reference.step(*reference.step(x0, v0, dt / 2)[:2], dt / 2)
+    assert reference.energy(*half[:2]) < e0

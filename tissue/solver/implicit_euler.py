@@ -151,7 +151,7 @@ class ImplicitEuler:
         self.parameters = new
         self._upload_parameters()
         if rest_changed and self.multigrid is not None:
-            self.multigrid.rebuild()     # its coarse inverse is of the rest matrix at this dt
+            self.multigrid.retune()      # its coarse inverse is of the rest matrix at this dt
 
     def _upload_parameters(self) -> None:
         self.arrays["parameters"].from_numpy(self.parameters.array().astype(real_numpy()))

@@ -42,6 +42,7 @@ from .state import DONE
 # docs/performance.md, branch free2).
 SMOOTHING_RANGE = 15.0
 LAMBDA_MARGIN = 1.1      # above the estimated λ_max of D₀⁻¹A₀, for rotations and the estimate's error
+TUNINGS = 4              # settings of dt and damping whose set-up a multigrid keeps (Multigrid.retune)
 
 
 def coarse_grid(points: np.ndarray, target_nodes: int):
@@ -105,7 +106,8 @@ def _spd_inverse(A: np.ndarray) -> np.ndarray:
 class Multigrid:
     """The two-level preconditioner of one ImplicitEuler (its assembled matrix, block-diagonal
     inverse and held nodes). `apply` is a Taichi function for the solver's kernels; `rebuild()`
-    redoes the set-up (numpy and scipy, no compilation) after the model, held nodes or dt change."""
+    redoes the set-up (numpy and scipy, no compilation) after the model or held nodes change,
+    `retune()` its parts that depend on dt and the damping after those change."""
 
     def __init__(self, solver):
         self.solver = solver
@@ -127,18 +129,9 @@ class Multigrid:
         coarse = np.searchsorted(used, embedding.nodes)          # renumbered; 0 where the weight is 0
         coarse[weights == 0] = 0
         self.coarse_points = grid.points[used]
-        A0 = solver.rest_matrix()
-        linked = np.repeat(model.mass > 0, 3)            # detached nodes have empty rows
-        theta, steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(A0[linked][:, linked]),
-                                              cg.smoothing_degree)
-        # The rest Galerkin operator Pᵀ A₀ P, inverted on the coarse dofs that keep a nonzero column.
         rows = np.repeat(np.arange(n), 4)
-        P = sp.kron(sp.csr_matrix((weights.ravel(), (rows, coarse.ravel())), shape=(n, nc)), sp.eye(3), format="csr")
-        Ac = (P.T @ A0 @ P).toarray()
-        active = np.flatnonzero(np.diag(Ac) > 1e-12 * np.abs(np.diag(Ac)).max())
-        C = np.zeros_like(Ac)
-        C[np.ix_(active, active)] = _spd_inverse(Ac[np.ix_(active, active)])
-        C = 0.5 * (C + C.T)
+        self._P = sp.kron(sp.csr_matrix((weights.ravel(), (rows, coarse.ravel())), shape=(n, nc)), sp.eye(3),
+                          format="csr")
         # Coarse node -> its (4 fine node + corner) entries of nonzero weight, for the restriction.
         entries = np.flatnonzero(weights.ravel())
         entries = entries[np.argsort(coarse.ravel()[entries], kind="stable")]
@@ -151,20 +144,50 @@ class Multigrid:
         padded_nodes[:n] = coarse
         padded_weights = np.zeros((capacity, 4), dtype=np_real)
         padded_weights[:n] = weights
-        arrays = _arrays(capacity, capacity, nc, len(entries), 1 + 2 * len(steps))
+        arrays = _arrays(capacity, capacity, nc, len(entries), 1 + 2 * (cg.smoothing_degree - 1))
         arrays["coarse_count"].from_numpy(np.array([nc], dtype=np.int32))
         arrays["nodes"].from_numpy(padded_nodes)
         arrays["weights"].from_numpy(padded_weights)
         arrays["fine_offsets"].from_numpy(offsets)
         if len(entries):
             arrays["fine_entries"].from_numpy(entries.astype(np.int32))
-        arrays["coarse_inverse"].from_numpy(C.astype(np_real))     # dof 3c + d of coarse node c, as P's columns
         arrays["nodal_R"].from_numpy(np.tile(np.eye(3, dtype=np_real), (capacity, 1, 1)))
-        arrays["coefficients"].from_numpy(np.array([theta] + [c for step in steps for c in step], dtype=np_real))
-        self.A0, self.theta, self.steps = A0, theta, steps
         self.arrays = arrays
         self._rotations_of = None      # (FEM rotation writes, tolerance) nodal_R was computed at
         self._io = [ti.ndarray(ti.types.vector(3, backend.current().real), capacity) for _ in range(2)]
+        self._tunings = {}
+        self.retune()
+
+    def retune(self) -> None:
+        """The parts of the set-up made from the rest matrix A₀ at the solver's dt and damping: the
+        Chebyshev coefficients (from λ_max(D₀⁻¹A₀)) and the coarse inverse (Pᵀ A₀ P)⁻¹. Each
+        setting's are kept until the next rebuild (at most TUNINGS of them): the energy check's
+        halved steps (tissue.solver.step_control) go to dt/2 and back, and making A₀ and the
+        coarse inverse again each time was most of a rejected step's cost."""
+        solver, model = self.solver, self.solver.model
+        key = (model.edits, model.material, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
+        if key not in self._tunings:
+            if len(self._tunings) == TUNINGS:
+                del self._tunings[next(iter(self._tunings))]        # the oldest
+            self._tunings[key] = self._tuning(solver.rest_matrix())
+        self.theta, self.steps, coarse_inverse = self._tunings[key]
+        np_real = real_numpy()
+        # dof 3c + d of coarse node c, as P's columns
+        self.arrays["coarse_inverse"].from_numpy(coarse_inverse.astype(np_real))
+        self.arrays["coefficients"].from_numpy(np.array([self.theta] + [c for step in self.steps for c in step],
+                                                        dtype=np_real))
+
+    def _tuning(self, A0: sp.spmatrix):
+        """(θ, the Chebyshev steps, the coarse inverse) of the rest matrix A0."""
+        linked = np.repeat(self.solver.model.mass > 0, 3)            # detached nodes have empty rows
+        theta, steps = chebyshev_coefficients(LAMBDA_MARGIN * largest_eigenvalue(A0[linked][:, linked]),
+                                              self.solver.cg.smoothing_degree)
+        # The rest Galerkin operator Pᵀ A₀ P, inverted on the coarse dofs that keep a nonzero column.
+        Ac = (self._P.T @ A0 @ self._P).toarray()
+        active = np.flatnonzero(np.diag(Ac) > 1e-12 * np.abs(np.diag(Ac)).max())
+        C = np.zeros_like(Ac)
+        C[np.ix_(active, active)] = _spd_inverse(Ac[np.ix_(active, active)])
+        return theta, steps, 0.5 * (C + C.T)
 
     def rotations_computed(self, tol: float) -> None:
         """The solver's step (its prepare_step counted in the FEM's rotation_writes) just wrote
@@ -212,6 +235,9 @@ class BlockJacobi:
             self.arrays["coarse_count"].from_numpy(np.zeros(1, dtype=np.int32))
             self.arrays["coefficients"].from_numpy(np.ones(1, dtype=real_numpy()))
             self._capacity = capacity
+
+    def retune(self) -> None:
+        """Nothing to redo: block-Jacobi does not depend on dt or the damping."""
 
     def rotations_computed(self, tol: float) -> None:
         """Nothing to note: without a coarse space the cycle computes no nodal rotations."""
