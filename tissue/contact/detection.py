@@ -287,41 +287,42 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), out: ti.types.nd
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     ti.loop_config(serialize=serial)
-    for s, o in ti.ndrange(ns, det.prm_offsets.shape[0] - 1):
-        R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
-                       [poses[o, 6], poses[o, 7], poses[o, 8]]])
-        t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-        p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
-        moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
-        reach = alarm + moved.norm()
-        best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-        # Bounds farther than `reach` skip what they hold, which cannot be within it: the
-        # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
-        # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
-        # tested in order, so the nearest (ties: the first) is the one all of them would give.
-        if _near(det.bounds, o, p, reach):
-            k = det.prm_offsets[o]
-            while k < det.prm_offsets[o + 1]:
-                end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                if _in_box(det.prm_bounds, k, 6, p, reach):
-                    for j in range(k, end):
-                        if _in_box(det.prm_bounds, j, 0, p, reach):
-                            r = _closest_primitive(det.prm, j, p)
-                            if r[0] < best[0]:
-                                best = r
-                k = end
-        # Within `alarm` at the free position, or at the step's start (the gap less the free
-        # motion along the normal): see the module docstring.
-        start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
-        out[s, o, 0] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
-        if out[s, o, 0] < 1e300:                # the host reads the rest of hits only
-            n = R @ ti.Vector([best[1], best[2], best[3]])
-            c = R @ ti.Vector([best[4], best[5], best[6]]) + t
-            for i in ti.static(range(3)):
-                out[s, o, 1 + i] = n[i]
-                out[s, o, 4 + i] = c[i]
-                out[s, o, 7 + i] = 0.0
-            out[s, o, 10] = -1.0
+    for s in range(ns):
+        for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
+            R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
+                           [poses[o, 6], poses[o, 7], poses[o, 8]]])
+            t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
+            p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
+            moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+            reach = alarm + moved.norm()
+            best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+            # Bounds farther than `reach` skip what they hold, which cannot be within it: the
+            # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
+            # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
+            # tested in order, so the nearest (ties: the first) is the one all of them would give.
+            if _near(det.bounds, o, p, reach):
+                k = det.prm_offsets[o]
+                while k < det.prm_offsets[o + 1]:
+                    end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                    if _in_box(det.prm_bounds, k, 6, p, reach):
+                        for j in range(k, end):
+                            if _in_box(det.prm_bounds, j, 0, p, reach):
+                                r = _closest_primitive(det.prm, j, p)
+                                if r[0] < best[0]:
+                                    best = r
+                    k = end
+            # Within `alarm` at the free position, or at the step's start (the gap less the free
+            # motion along the normal): see the module docstring.
+            start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
+            out[s, o, 0] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
+            if out[s, o, 0] < 1e300:                # the host reads the rest of hits only
+                n = R @ ti.Vector([best[1], best[2], best[3]])
+                c = R @ ti.Vector([best[4], best[5], best[6]]) + t
+                for i in ti.static(range(3)):
+                    out[s, o, 1 + i] = n[i]
+                    out[s, o, 4 + i] = c[i]
+                    out[s, o, 7 + i] = 0.0
+                out[s, o, 10] = -1.0
 
 
 @ti.kernel
@@ -364,8 +365,10 @@ def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray()
     for f in range(nf):                         # count the triangles of each cell
         a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
         i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
-        for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-            ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
+        for i in range(i0[0], i1[0] + 1):       # (nested: an inner ti.ndrange divides for its indices)
+            for j in range(i0[1], i1[1] + 1):
+                for k in range(i0[2], i1[2] + 1):
+                    ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
     ti.loop_config(serialize=serial)
     for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
         for c in range(det.grid_i[3]):
@@ -378,8 +381,10 @@ def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray()
         if det.grid_i[4] <= det.ids.shape[0]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
             i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
-            for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-                det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
+            for i in range(i0[0], i1[0] + 1):
+                for j in range(i0[1], i1[1] + 1):
+                    for k in range(i0[2], i1[2] + 1):
+                        det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
     ti.loop_config(serialize=serial)
     for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
         nv = ti.Vector([0.0, 0.0, 0.0])
