@@ -283,12 +283,25 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
                   state: ti.types.ndarray(), alarm: float, h: float, copy_state: ti.i32, serial: ti.template()):
     """Body A's contact candidates on the obstacles, in one launch: every (sample, obstacle)
     pair, the nearest of the obstacle's primitives. gap[s, o]: its gap, 1e300 for none; a hit's
-    out[s, o] = [normal (3), closest point (3), 0 (3), -1]. copy_state: see _copy_state."""
+    out[s, o] = [normal (3), closest point (3), 0 (3), -1]. poses[o]: obstacle o's rotation R
+    (row-major), translation t and bounding ball in the world frame (centre, radius; < 0:
+    unbounded). copy_state: see _copy_state."""
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     ti.loop_config(serialize=serial)
     for s in range(ns):
+        # A cheap test first, in the world frame: the sample beyond the obstacle's ball grown by
+        # the alarm distance and the sample's free motion (with room for rounding: an isometry's
+        # distances are the same) cannot pass the test in the obstacle's frame below; the pairs
+        # that may are tested there as they are, so the hits do not change.
+        free = _sample(det.xa, det.nodes, det.weights, s)
+        grow = alarm + h * _sample(det.va, det.nodes, det.weights, s).norm()
         for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
+            d = free - ti.Vector([poses[o, 12], poses[o, 13], poses[o, 14]])
+            bound = (poses[o, 15] + grow) * (1.0 + 1e-9)
+            if poses[o, 15] >= 0.0 and d.dot(d) > bound * bound:
+                gap[s, o] = 1e300
+                continue
             R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
@@ -575,10 +588,11 @@ class Detector:
             self._prm_bounds.from_numpy(np.concatenate(
                 [_primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
+        self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
         if self.obstacles:
-            self._bounds.from_numpy(np.array([o.bounding_ball() for o in self.obstacles], dtype=self._np))
+            self._bounds.from_numpy(self._balls.astype(self._np))
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
-        self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
+        self._poses = np.zeros((max(1, len(self.obstacles)), 16), self._np)    # see _detect_rigid
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
@@ -628,7 +642,9 @@ class Detector:
         packed = self._poses                  # filled in place: the launches replay (tissue.launch)
         if not all(map(operator.is_, poses, self._packed)):     # (a static obstacle hands one read-only pose)
             for o, (R, t) in enumerate(poses):
-                packed[o, :9], packed[o, 9:] = R.reshape(-1), t
+                ball = self._balls[o]
+                packed[o, :9], packed[o, 9:12] = R.reshape(-1), t
+                packed[o, 12:15], packed[o, 15] = R @ ball[:3] + t, ball[3]
             self._packed = tuple(poses)
         sizes = [f.shape[0] for f in fields_]
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
