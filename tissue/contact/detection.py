@@ -10,9 +10,10 @@ side where p belongs) and the gap g = n·(p - c) (negative when p has penetrated
 contacts c is a point of a triangle of the other body with barycentric weights w, so
 g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
 
-  soft–rigid  one thread per (sample, obstacle) pair, the nearest of the obstacle's primitives
-              in the obstacle's frame, skipping those whose bounding box, or their group's (a
-              run of touching primitives: a rib), is beyond the alarm distance; triangle-mesh
+  soft–rigid  one thread per sample, for each obstacle the nearest of its primitives in the
+              obstacle's frame, skipping the obstacle whose bounding ball, and the primitives
+              whose bounding box, or their group's (a run of touching primitives: a rib), is
+              beyond the alarm distance; triangle-mesh
               obstacles are queried on the host with open3d (closest point, and inside/outside
               by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
