@@ -10,9 +10,10 @@ side where p belongs) and the gap g = n·(p - c) (negative when p has penetrated
 contacts c is a point of a triangle of the other body with barycentric weights w, so
 g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
 
-  soft–rigid  one thread per (sample, obstacle) pair, the nearest of the obstacle's primitives
-              in the obstacle's frame, skipping those whose bounding box, or their group's (a
-              run of touching primitives: a rib), is beyond the alarm distance; triangle-mesh
+  soft–rigid  one thread per sample, for each obstacle the nearest of its primitives in the
+              obstacle's frame, skipping the obstacle whose bounding ball, and the primitives
+              whose bounding box, or their group's (a run of touching primitives: a rib), is
+              beyond the alarm distance; triangle-mesh
               obstacles are queried on the host with open3d (closest point, and inside/outside
               by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
@@ -279,58 +280,72 @@ def _copy_state(det: ti.template(), state: ti.template(), h, copy_state, serial:
 
 
 @ti.kernel
-def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
-                  alarm: float, h: float, copy_state: ti.i32, serial: ti.template()):
+def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.ndarray(), out: ti.types.ndarray(),
+                  state: ti.types.ndarray(), alarm: float, h: float, copy_state: ti.i32, serial: ti.template()):
     """Body A's contact candidates on the obstacles, in one launch: every (sample, obstacle)
-    pair, the nearest of the obstacle's primitives. out[s, o] = [gap, normal (3), closest point
-    (3), 0 (3), -1]; gap 1e300: none. copy_state: see _copy_state."""
+    pair, the nearest of the obstacle's primitives. gap[s, o]: its gap, 1e300 for none; a hit's
+    out[s, o] = [normal (3), closest point (3), 0 (3), -1]. poses[o]: obstacle o's rotation R
+    (row-major), translation t and bounding ball in the world frame (centre, radius; < 0:
+    unbounded). copy_state: see _copy_state."""
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     ti.loop_config(serialize=serial)
-    for s, o in ti.ndrange(ns, det.prm_offsets.shape[0] - 1):
-        R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
-                       [poses[o, 6], poses[o, 7], poses[o, 8]]])
-        t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-        p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
-        moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
-        reach = alarm + moved.norm()
-        best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-        # Bounds farther than `reach` skip what they hold, which cannot be within it: the
-        # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
-        # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
-        # tested in order, so the nearest (ties: the first) is the one all of them would give.
-        if _near(det.bounds, o, p, reach):
-            k = det.prm_offsets[o]
-            while k < det.prm_offsets[o + 1]:
-                end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                if _in_box(det.prm_bounds, k, 6, p, reach):
-                    for j in range(k, end):
-                        if _in_box(det.prm_bounds, j, 0, p, reach):
-                            r = _closest_primitive(det.prm, j, p)
-                            if r[0] < best[0]:
-                                best = r
-                k = end
-        # Within `alarm` at the free position, or at the step's start (the gap less the free
-        # motion along the normal): see the module docstring.
-        start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
-        out[s, o, 0] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
-        if out[s, o, 0] < 1e300:                # the host reads the rest of hits only
-            n = R @ ti.Vector([best[1], best[2], best[3]])
-            c = R @ ti.Vector([best[4], best[5], best[6]]) + t
-            for i in ti.static(range(3)):
-                out[s, o, 1 + i] = n[i]
-                out[s, o, 4 + i] = c[i]
-                out[s, o, 7 + i] = 0.0
-            out[s, o, 10] = -1.0
+    for s in range(ns):
+        # A cheap test first, in the world frame: the sample beyond the obstacle's ball grown by
+        # the alarm distance and the sample's free motion (with room for rounding: an isometry's
+        # distances are the same) cannot pass the test in the obstacle's frame below; the pairs
+        # that may are tested there as they are, so the hits do not change.
+        free = _sample(det.xa, det.nodes, det.weights, s)
+        grow = alarm + h * _sample(det.va, det.nodes, det.weights, s).norm()
+        for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
+            d = free - ti.Vector([poses[o, 12], poses[o, 13], poses[o, 14]])
+            bound = (poses[o, 15] + grow) * (1.0 + 1e-9)
+            if poses[o, 15] >= 0.0 and d.dot(d) > bound * bound:
+                gap[s, o] = 1e300
+                continue
+            R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
+                           [poses[o, 6], poses[o, 7], poses[o, 8]]])
+            t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
+            p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
+            moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+            reach = alarm + moved.norm()
+            best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+            # Bounds farther than `reach` skip what they hold, which cannot be within it: the
+            # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
+            # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
+            # tested in order, so the nearest (ties: the first) is the one all of them would give.
+            if _near(det.bounds, o, p, reach):
+                k = det.prm_offsets[o]
+                while k < det.prm_offsets[o + 1]:
+                    end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                    if _in_box(det.prm_bounds, k, 6, p, reach):
+                        for j in range(k, end):
+                            if _in_box(det.prm_bounds, j, 0, p, reach):
+                                r = _closest_primitive(det.prm, j, p)
+                                if r[0] < best[0]:
+                                    best = r
+                    k = end
+            # Within `alarm` at the free position, or at the step's start (the gap less the free
+            # motion along the normal): see the module docstring.
+            start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
+            gap[s, o] = best[0] if ti.min(best[0], start_gap) <= alarm else 1e300
+            if gap[s, o] < 1e300:                   # the host reads the rest of hits only
+                n = R @ ti.Vector([best[1], best[2], best[3]])
+                c = R @ ti.Vector([best[4], best[5], best[6]]) + t
+                for i in ti.static(range(3)):
+                    out[s, o, i] = n[i]
+                    out[s, o, 3 + i] = c[i]
+                    out[s, o, 6 + i] = 0.0
+                out[s, o, 9] = -1.0
 
 
 @ti.kernel
-def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray(), cell0: float, alarm: float,
-                 slot: ti.i32, h: float, copy_state: ti.i32, serial: ti.template()):
+def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
+                 cell0: float, alarm: float, slot: ti.i32, h: float, copy_state: ti.i32, serial: ti.template()):
     """Body A's contact candidates on body B's surface, in one launch: B's triangle grid (box,
     counting sort), B's vertex normals, then per sample the nearest triangle of its cell within
-    `alarm`. out[s, slot] = [gap, normal (3), closest point (3), weights on B's triangle (3),
-    triangle id]; gap 1e300: none. copy_state: see _copy_state."""
+    `alarm`. gap[s, slot]: its gap, 1e300 for none; a hit's out[s, slot] = [normal (3), closest
+    point (3), weights on B's triangle (3), triangle id]. copy_state: see _copy_state."""
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     nf = det.faces.shape[0]
@@ -364,22 +379,26 @@ def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray()
     for f in range(nf):                         # count the triangles of each cell
         a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
         i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
-        for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-            ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
+        for i in range(i0[0], i1[0] + 1):       # (nested: an inner ti.ndrange divides for its indices)
+            for j in range(i0[1], i1[1] + 1):
+                for k in range(i0[2], i1[2] + 1):
+                    ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
     ti.loop_config(serialize=serial)
     for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
         for c in range(det.grid_i[3]):
             det.start[c + 1] += det.start[c]
             det.cursor[c] = det.start[c]
         det.grid_i[4] = det.start[det.grid_i[3]]
-        out[ns, slot, 0] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
+        gap[ns, slot] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
     ti.loop_config(serialize=serial)
     for f in range(nf):                         # fill (order within a cell: any; see below)
         if det.grid_i[4] <= det.ids.shape[0]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
             i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
-            for i, j, k in ti.ndrange((i0[0], i1[0] + 1), (i0[1], i1[1] + 1), (i0[2], i1[2] + 1)):
-                det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
+            for i in range(i0[0], i1[0] + 1):
+                for j in range(i0[1], i1[1] + 1):
+                    for k in range(i0[2], i1[2] + 1):
+                        det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
     ti.loop_config(serialize=serial)
     for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
         nv = ti.Vector([0.0, 0.0, 0.0])
@@ -389,8 +408,7 @@ def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray()
         det.normals[det.surface[k]] = nv / ti.max(nv.norm(), 1e-300)
     ti.loop_config(serialize=serial)
     for s in range(ns):                         # narrow phase
-        out[s, slot, 0] = 1e300
-        out[s, slot, 10] = -1.0
+        gap[s, slot] = 1e300
         p = _sample(det.xa, det.nodes, det.weights, s)
         ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
         best, best_face = 1e300, -1
@@ -419,12 +437,12 @@ def _detect_soft(det: DETECT, out: ti.types.ndarray(), state: ti.types.ndarray()
                 side = 1.0 if d.dot(vn) >= 0.0 else -1.0
                 n = side * d / best
                 g = side * best
-            out[s, slot, 0] = g
+            gap[s, slot] = g
             for i in ti.static(range(3)):
-                out[s, slot, 1 + i] = n[i]
-                out[s, slot, 4 + i] = best_c[i]
-                out[s, slot, 7 + i] = best_w[i]
-            out[s, slot, 10] = ti.cast(best_face, float)
+                out[s, slot, i] = n[i]
+                out[s, slot, 3 + i] = best_c[i]
+                out[s, slot, 6 + i] = best_w[i]
+            out[s, slot, 9] = ti.cast(best_face, float)
 
 
 @ti.kernel
@@ -456,7 +474,7 @@ def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
 class _Surface:
     """One body's constant detection data on the device, and its output buffer."""
 
-    def __init__(self, faces, samples, n_nodes, out, real, npr):
+    def __init__(self, faces, samples, n_nodes, gap, out, real, npr):
         nodes, weights = samples
         self.faces_np = faces
         self.n_samples = len(nodes)
@@ -477,7 +495,7 @@ class _Surface:
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
         self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
-        self.out = out                            # its rows of the Detector's _HitBuffer
+        self.gap, self.out = gap, out             # its rows of the Detector's _HitBuffer
 
 
 def _primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
@@ -504,18 +522,21 @@ def _primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
 
 class _HitBuffer:
     """Every body's detection output in one buffer, body after body: a row per sample, then one
-    row where a soft launch leaves the room its triangle grid needed (out[-1]), each row a slot
-    per obstacle and per other body (11 numbers: see _detect_rigid, _detect_soft); and
-    what identifies a hit in each row and slot, so that the hits of every body are read at once
-    (a step's few dozen numpy calls once, not once per body and then joined)."""
+    row where a soft launch leaves the room its triangle grid needed (gap[-1]), each row a slot
+    per obstacle and per other body: its gap in `gap`, a hit's other 10 numbers in `array` (see
+    _detect_rigid, _detect_soft; apart, so that finding the hits reads 8 bytes a slot, not the
+    records' cache lines); and what identifies a hit in each row and slot, so that the hits of
+    every body are read at once (a step's few dozen numpy calls once, not once per body and then
+    joined)."""
 
     def __init__(self, samples, faces, n_obstacles: int, soft_soft: bool, npr):
         n_bodies = len(samples)
         slots = max(n_obstacles + (n_bodies - 1 if soft_soft else 0), 1)
         rows = [len(nodes) + 1 for nodes, _ in samples]
         start = np.r_[0, np.cumsum(rows)]
-        self.array = np.full((start[-1], slots, 11), 1e300, npr)     # (in float32: inf)
-        self.outs = [self.array[start[b]:start[b + 1]] for b in range(n_bodies)]
+        self.gap = np.full((start[-1], slots), 1e300, npr)     # (in float32: inf)
+        self.array = np.zeros((start[-1], slots, 10), npr)
+        self.outs = [(self.gap[start[b]:start[b + 1]], self.array[start[b]:start[b + 1]]) for b in range(n_bodies)]
         self.room_rows = start[1:] - 1
         self.body = np.repeat(np.arange(n_bodies, dtype=np.int32), rows)
         self.sample = np.concatenate([np.arange(n, dtype=np.int32) for n in rows])
@@ -568,10 +589,11 @@ class Detector:
             self._prm_bounds.from_numpy(np.concatenate(
                 [_primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
+        self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
         if self.obstacles:
-            self._bounds.from_numpy(np.array([o.bounding_ball() for o in self.obstacles], dtype=self._np))
+            self._bounds.from_numpy(self._balls.astype(self._np))
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
-        self._poses = np.zeros((max(1, len(self.obstacles)), 12), self._np)
+        self._poses = np.zeros((max(1, len(self.obstacles)), 16), self._np)    # see _detect_rigid
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
@@ -602,8 +624,8 @@ class Detector:
         sizes = [f.shape[0] for f in fields_]
         if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
             self._hits = _HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
-            self._bodies = [_Surface(f, s, n, out, self.real, self._np)
-                            for f, s, n, out in zip(self.faces, self.samples, sizes, self._hits.outs)]
+            self._bodies = [_Surface(f, s, n, gap, out, self.real, self._np)
+                            for f, s, n, (gap, out) in zip(self.faces, self.samples, sizes, self._hits.outs)]
 
     def detect(self, positions, alarm: float, poses=None, previous_poses=None, velocities=None,
                dt: float = 0.0) -> "Contacts":
@@ -621,7 +643,9 @@ class Detector:
         packed = self._poses                  # filled in place: the launches replay (tissue.launch)
         if not all(map(operator.is_, poses, self._packed)):     # (a static obstacle hands one read-only pose)
             for o, (R, t) in enumerate(poses):
-                packed[o, :9], packed[o, 9:] = R.reshape(-1), t
+                ball = self._balls[o]
+                packed[o, :9], packed[o, 9:12] = R.reshape(-1), t
+                packed[o, 12:15], packed[o, 15] = R @ ball[:3] + t, ball[3]
             self._packed = tuple(poses)
         sizes = [f.shape[0] for f in fields_]
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
@@ -629,22 +653,22 @@ class Detector:
         for a, x in enumerate(fields_):
             others = [b for b in range(len(fields_)) if b != a] if self.soft_soft else []
             v = None if velocities is None else velocities[a]
-            out = self._run(a, x, fields_, others, alarm, packed, v, dt)
+            self._run(a, x, fields_, others, alarm, packed, v, dt)
             for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
                 if obstacle.meshes:
-                    self._mesh(a, x, o, obstacle, poses[o], out, alarm, v is not None)
+                    self._mesh(a, x, o, obstacle, poses[o], alarm, v is not None)
         return self._contacts(poses, previous_poses)
 
-    def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> np.ndarray:
+    def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> None:
         body, no = self._bodies[a], len(self.obstacles)
-        out = body.out
+        gap, out = body.gap, body.out
         if not self.has_primitives:
-            out[:, :no, 0] = 1e300
+            gap[:, :no] = 1e300
         state = self.state[a] if v is not None else self._no_state
         if not (self.has_primitives or others) or body.n_samples == 0:
             if v is not None:
                 read_state(x, v, dt, state)
-            return out
+            return
         launches = [(others[0] if others else a, self.has_primitives, bool(others))]
         launches += [(b, False, True) for b in others[1:]]
         own = (x, body.nodes, body.weights, x if v is None else v, self._prm, self._prm_offsets, self._prm_bounds,
@@ -652,14 +676,13 @@ class Detector:
         for k, (b, rigid, soft) in enumerate(launches):
             copy_state = int(v is not None and k == 0)
             if rigid:
-                _detect_rigid_replayed(self._pack((a, None), DETECT_RIGID, own), poses, out, state, alarm, dt,
+                _detect_rigid_replayed(self._pack((a, None), DETECT_RIGID, own), poses, gap, out, state, alarm, dt,
                                        copy_state, self.serial)
             if soft:
-                self._run_soft(a, b, own, fields_[b], out, state, alarm, no + others.index(b), dt,
+                self._run_soft(a, b, own, fields_[b], gap, out, state, alarm, no + others.index(b), dt,
                                0 if rigid else copy_state)
-        return out
 
-    def _run_soft(self, a, b, own, xb, out, state, alarm, slot, dt, copy_state) -> None:
+    def _run_soft(self, a, b, own, xb, gap, out, state, alarm, slot, dt, copy_state) -> None:
         """Body a's launch against body b's surface (`own`: body a's arrays of the launch, RIGID_MEMBERS)."""
         other = self._bodies[b]
         if other.cell is None:                        # the median triangle extent, at the first call
@@ -670,8 +693,9 @@ class Detector:
             pack = self._pack((a, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets, other.vf,
                                                other.normals, other.start, other.cursor, ids, other.grid_i,
                                                other.grid_f))     # SOFT_MEMBERS
-            _detect_soft_replayed(pack, out, state, other.cell + 2 * alarm, alarm, slot, dt, copy_state, self.serial)
-            needed = int(out[-1, slot, 0])
+            _detect_soft_replayed(pack, gap, out, state, other.cell + 2 * alarm, alarm, slot, dt, copy_state,
+                                  self.serial)
+            needed = int(gap[-1, slot])
             if needed <= ids.shape[0]:
                 return
             ids = self.storage.get(b, needed, ti.i32)          # grow and redo (rare)
@@ -683,7 +707,7 @@ class Detector:
         kept = self._packs[pair] = kept_pack(self._packs.get(pair), kind, arrays)
         return kept[0]
 
-    def _mesh(self, a, x, o, obstacle, pose, out, alarm, moving) -> None:
+    def _mesh(self, a, x, o, obstacle, pose, alarm, moving) -> None:
         """Hits on a triangle-mesh obstacle (open3d), by the kernel's rule for primitives: within
         `alarm` at the free position or at the step's start (`moving`: self.state holds it)."""
         nodes, weights = self.samples[a]
@@ -695,29 +719,30 @@ class Detector:
         if moving:
             start = self.state[a][:, 3:]
             start_gap = g - np.einsum("si,si->s", n @ R.T, points - np.einsum("sj,sji->si", weights, start[nodes]))
-        res = out[:-1, o]
-        better = (np.minimum(g, start_gap) <= alarm) & (g < res[:, 0])
-        res[better, :7] = np.column_stack([g, n @ R.T, c @ R.T + t])[better]
-        res[better, 7:10], res[better, 10] = 0.0, -1.0
+        gaps, res = self._bodies[a].gap[:-1, o], self._bodies[a].out[:-1, o]
+        better = (np.minimum(g, start_gap) <= alarm) & (g < gaps)
+        gaps[better] = g[better]
+        res[better, :6] = np.column_stack([n @ R.T, c @ R.T + t])[better]
+        res[better, 6:9], res[better, 9] = 0.0, -1.0
 
     def _contacts(self, poses, previous_poses) -> "Contacts":
         """Every body's hits (the buffer's) as Contacts, ordered by (body, sample, kind, other)
         (np.nonzero's order over the buffer)."""
         buffer, no = self._hits, len(self.obstacles)
         # (none: 1e300, or inf in float32; np.nonzero over the 2-d mask costs twice this)
-        hit = buffer.array[:, :, 0] < 1e299
+        hit = buffer.gap < 1e299
         hit[buffer.room_rows] = False
-        row, slot = np.divmod(hit.ravel().nonzero()[0], buffer.array.shape[1])
+        row, slot = np.divmod(hit.ravel().nonzero()[0], buffer.gap.shape[1])
         res = buffer.array[row, slot].astype(np.float64, copy=False)
         soft = slot >= no
         if soft.any():
             hits = self._identities(row, slot, soft)
-            face = res[soft, 10].astype(np.int64)
+            face = res[soft, 9].astype(np.int64)
             hits["triangle"][soft] = buffer.faces[buffer.face_offset[hits["other"][soft]] + face]
-            hits["weights"] = np.where(soft[:, None], res[:, 7:10], 0.0)
+            hits["weights"] = np.where(soft[:, None], res[:, 6:9], 0.0)
         else:
             hits = self._rigid_identities(row, slot, soft)
-        point = res[:, 4:7]
+        point = res[:, 3:6]
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
         motion = np.zeros((len(row), 3))
@@ -727,7 +752,8 @@ class Detector:
                 (R1, t1), (R0, t0) = poses[j], previous_poses[j]
                 p = point[sel]
                 motion[sel] = p - ((p - t1) @ R1 @ R0.T + t0)
-        return Contacts(**hits, normal=res[:, 1:4], gap=res[:, 0], closest=point, other_motion=motion)
+        return Contacts(**hits, normal=res[:, :3], gap=buffer.gap[row, slot].astype(np.float64, copy=False),
+                        closest=point, other_motion=motion)
 
     def _identities(self, row, slot, soft) -> dict:
         """What identifies the hits in the buffer's rows `row` and slots `slot`: their Contacts

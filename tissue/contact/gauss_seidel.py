@@ -161,7 +161,8 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
     stale, play = 0, 0          # FACTORED: y behind r; W among the contacts in play still kept
-    _refresh(layout, W, P.r, n)
+    # (y is first made by the residual at sweep 0, inside the loop: refreshed out here, at the
+    # kernel's top level, its loops would each be a parallel task, a dispatch to the thread pool.)
     while True:
         if ti.static(layout == FACTORED):
             if it == 0:
