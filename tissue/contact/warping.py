@@ -145,21 +145,35 @@ def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, Qb: ti.tem
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         k.ht[i] = _row_translation(k, o_count, o_ptr, i)
+    # One thread: nested loops (a top-level ti.ndrange divides for its two indices at every entry);
+    # else one parallel loop over all the entries.
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for a in range(ld * gather):
+            for m in range(ld):
+                Qt[q0 + a * ld + m] = _gathered_entry(k, Qb, a, m, d, o_touched, inverse_mass)
+    else:
+        for a, m in ti.ndrange(ld * gather, ld):
+            Qt[q0 + a * ld + m] = _gathered_entry(k, Qb, a, m, d, o_touched, inverse_mass)
+
+
+@ti.func
+def _gathered_entry(k: ti.template(), Qb: ti.template(), a, m, d, o_touched, inverse_mass):
+    """Entry (a, m) of the gathered Q (see _translations_and_gather): last step's gather where both
+    nodes were touched then, else read from the whole Q; the translation's block past d."""
     qb0, ldb = k.sizes[Q_BEFORE], k.sizes[LD_BEFORE]
-    ti.loop_config(serialize=serial)
-    for a, m in ti.ndrange(ld * gather, ld):
-        value_am = 0.0
-        if a < d and m < d:
-            pa, pm = -1, -1
-            if ldb > 0:
-                pa, pm = k.before[a // 3], k.before[m // 3]
-            if pa >= 0 and pm >= 0:
-                value_am = Qb[qb0 + (3 * pa + a % 3) * ldb + 3 * pm + m % 3]
-            else:
-                value_am = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
-        elif a == m:
-            value_am = inverse_mass
-        Qt[q0 + a * ld + m] = value_am
+    value = 0.0
+    if a < d and m < d:
+        pa, pm = -1, -1
+        if ldb > 0:
+            pa, pm = k.before[a // 3], k.before[m // 3]
+        if pa >= 0 and pm >= 0:
+            value = Qb[qb0 + (3 * pa + a % 3) * ldb + 3 * pm + m % 3]
+        else:
+            value = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
+    elif a == m:
+        value = inverse_mass
+    return value
 
 
 # One launch each (parallel loops; on one thread for small bodies on the CPU): _rotate for the
