@@ -317,15 +317,22 @@ def _chebyshev_update(k: ti.template(), z: ti.template(), step, v):
 
 
 @ti.func
-def _coarse_correction(k: ti.template(), z: ti.template()):
-    """z += R P A_c⁻¹ Pᵀ Rᵀ res. The coarse vectors are flat (coarse node c's dofs at 3c, 3c+1, 3c+2),
-    so that the dense product is one scalar dot product per row of A_c⁻¹, 3·nc rows to share out."""
+def _coarse_correction(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
+    """z += R P A_c⁻¹ Pᵀ Rᵀ (r - A z), after `multiply(z)`. The residual is turned by Rᵀ node by node
+    as it is taken (into d, which the next smoothing starts afresh), once rather than at each of
+    the node's up to 4 coarse nodes. The coarse vectors are flat (coarse node c's dofs at 3c,
+    3c+1, 3c+2), so that the dense product is one scalar dot product per row of A_c⁻¹, 3·nc rows
+    to share out."""
+    mass_factor, stiffness_factor = factors(k)
+    for v in range(k.counts[0]):
+        if _running(k):
+            k.d[v] = k.nodal_R[v].transpose() @ (r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor))
     for c in range(k.coarse_count[0]):  # restriction: a gather over the fine nodes around c
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
             for j in range(k.fine_offsets[c], k.fine_offsets[c + 1]):
                 v, corner = k.fine_entries[j] // 4, k.fine_entries[j] % 4
-                s += k.weights[v][corner] * (k.nodal_R[v].transpose() @ k.res[v])
+                s += k.weights[v][corner] * k.d[v]
             for d in ti.static(range(3)):
                 k.rc[3 * c + d] = s[d]
     for i in range(3 * k.coarse_count[0]):
@@ -358,17 +365,15 @@ def apply(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()
             if stage == 0:
                 _smooth(k, o, r, z, True)
             else:
-                multiply(k, o, z)       # for res = r - A z
+                multiply(k, o, z)       # for the residual r - A z
                 if stage == 1:
-                    _residual(k, o, r, z)
-                    _coarse_correction(k, z)
+                    _coarse_correction(k, o, r, z)
                 else:
                     _smooth(k, o, r, z, False)
     else:   # parallel loops stay at the kernel's top level
         _smooth(k, o, r, z, True)
         multiply(k, o, z)
-        _residual(k, o, r, z)
-        _coarse_correction(k, z)
+        _coarse_correction(k, o, r, z)
         multiply(k, o, z)
         _residual(k, o, r, z)
         _smooth(k, o, r, z, False)
