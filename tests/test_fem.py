@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from tissue.errors import TissueError
 from tissue.fem import CorotationalFEM, Material
-from tissue.fem.rotations import polar_rotation, symmetric_eigen
+from tissue.fem.rotations import ROTATION_TOLERANCE, polar_rotation, symmetric_eigen
 from tissue.mesh import TetMesh, box
 from tissue.solver import reference as ref
 
@@ -251,7 +251,7 @@ def test_polar_rotation_of_inverted_elements_is_the_closest_proper_rotation(back
 @ti.kernel
 def _polar_kernel(a: ti.types.ndarray(), out: ti.types.ndarray()):
     for i in range(a.shape[0]):
-        out[i] = polar_rotation(a[i], 1e-13)
+        out[i] = polar_rotation(a[i], ROTATION_TOLERANCE["f64"])
 
 
 def test_polar_rotation_matches_scipys_polar_near_and_far_from_orthogonal(backend):

@@ -355,17 +355,18 @@ def symmetric_multiply(m: ti.template(), a: ti.template(), src: ti.template()):
     for v in range(m.counts[0]):
         a.product[v] = a.diagonal[v] @ src[v]
     # Blocks of one row mostly follow each other (sorted when built; an edit appends): their
-    # row's sum is kept in a register and stored once per run of the row.
-    row, row_sum = -1, ti.Vector([0.0, 0.0, 0.0])
+    # row's sum and src at the row are kept in registers over the run of the row (src would be read
+    # again after each store: an ndarray might alias another), the sum stored once per run.
+    row, row_sum, src_row = -1, ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
     for j in range(a.block_count[0]):
         r, c = a.index[j][0], a.index[j][1]
         if r != row:
             if row >= 0:
                 a.product[row] = a.product[row] + row_sum
-            row, row_sum = r, ti.Vector([0.0, 0.0, 0.0])
+            row, row_sum, src_row = r, ti.Vector([0.0, 0.0, 0.0]), src[r]
         B = a.blocks[j]
         row_sum += B @ src[c]
-        a.product[c] = a.product[c] + B.transpose() @ src[r]
+        a.product[c] = a.product[c] + B.transpose() @ src_row
     if row >= 0:
         a.product[row] = a.product[row] + row_sum
 

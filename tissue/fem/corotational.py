@@ -28,7 +28,7 @@ from ..mesh import TetMesh
 from .compression_limit import compressed, compression_stress, limit_tangent_stress, limited_directions
 from .material import Material
 from .model import MODEL, BodyModel, real_numpy
-from .rotations import edge_frame, polar_rotation
+from .rotations import ROTATION_TOLERANCE, edge_frame, polar_rotation
 
 # The per-step work of the FEM: element rotations, the principal directions (columns, rotated
 # frame) in which each element's compression limit is active ("invertible"; zero otherwise) and
@@ -311,7 +311,7 @@ class CorotationalFEM:
         # Writes of the element rotations R (the solver counts its steps' too): what was computed
         # from them (the multigrid's nodal rotations) holds while this count has not moved.
         self.rotation_writes = 0
-        self.rotation_tolerance = 1e-13 if backend.current().precision == "f64" else 1e-6
+        self.rotation_tolerance = ROTATION_TOLERANCE[backend.current().precision]
         self._version = None
         self._colouring = None       # (order, offsets) of the colouring ablation; edits drop it
         self.resize()

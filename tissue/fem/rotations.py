@@ -10,6 +10,9 @@ import taichi as ti
 # The mean of a node's element rotations is taken as singular (no polar factor) below this
 # determinant (1 for alike rotations; 0 when, e.g., I and a half turn average).
 SINGULAR_MEAN = 1e-6
+# What the rotations' iterations are taken to, per precision: ‖XᵀX − I‖ (Newton–Schulz) or the
+# scaled Newton iteration's error, at the iterate they return; at round-off.
+ROTATION_TOLERANCE = {"f64": 1e-16, "f32": 1e-7}
 
 
 @ti.func
@@ -81,7 +84,7 @@ def polar_rotation(F, tol):
         Y = 0.5 * (zeta * X + Xinv_t / zeta)
         change = (Y - X).norm()
         X = Y
-        done = change <= tol
+        done = change * change <= tol     # Y's error is about half the square of X's, `change`
     if F.determinant() < 0:
         S = X.transpose() @ F
         values, V = symmetric_eigen(0.5 * (S + S.transpose()))
@@ -126,7 +129,8 @@ def nodal_rotation(Re: ti.template(), valence: ti.template(), incidence: ti.temp
 def newton_schulz(F, tol):
     """(X, converged): F's orthogonal polar factor by Newton–Schulz, X ← X (3I − XᵀX) / 2, which
     converges quadratically where F is nearly orthogonal (‖FᵀF − I‖ ≤ 0.5: stretches within about
-    30 % of 1) by 3×3 products alone; farther away not converged, X = F."""
+    30 % of 1) by 3×3 products alone; farther away not converged, X = F. Converged once the last
+    update left ‖XᵀX − I‖ within `tol`: it takes E = XᵀX − I to −¾E² + ¼E³, of norm at most ‖E‖²."""
     X, done = F, False
     for _ in range(12):
         E = X.transpose() @ X - ti.Matrix.identity(float, 3)
@@ -134,7 +138,7 @@ def newton_schulz(F, tol):
         if e > 0.5:                             # too far from orthogonal for Newton–Schulz
             break
         X = X - 0.5 * (X @ E)
-        if e <= tol:
+        if e * e <= tol:
             done = True
             break
     return X, done

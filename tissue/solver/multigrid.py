@@ -284,20 +284,26 @@ def _running(k: ti.template()):
 
 @ti.func
 def _residual(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
-    multiply(k, o, z)
+    """res = r - A z, after `multiply(z)`."""
     mass_factor, stiffness_factor = factors(k)
-    for v in range(k.counts[0]):  # res = r - A z
+    for v in range(k.counts[0]):
         if _running(k):
             k.res[v] = r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor)
 
 
 @ti.func
 def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template(), from_zero):
-    """z += S res (Chebyshev in D⁻¹A); from zero (known at compile or run time), res = r and z = S r."""
+    """z += S res (Chebyshev in D⁻¹A): from zero (known at compile or run time), res = r and z = S r;
+    else from res = r - A z, which one thread takes here, in the same pass over the nodes (after
+    `multiply(z)`: a node's row reads only its own z), and the parallel rows layout, whose rows
+    read the neighbours' z, in a pass of its own before (_residual)."""
+    mass_factor, stiffness_factor = factors(k)
     for v in range(k.counts[0]):
         if _running(k):
             if from_zero:
                 k.res[v] = r[v]
+            elif ti.static(o.serial):
+                k.res[v] = r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor)
             d = (k.block_inverse[v] @ k.res[v]) / k.coefficients[0]
             k.d[v] = d
             if from_zero:
@@ -314,28 +320,46 @@ def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template
 
 @ti.func
 def _chebyshev_step(k: ti.template(), o: ti.template(), z: ti.template(), step):
+    """res -= A d, then d and z: node by node in one pass where one thread runs the cycle (multiply
+    took A d whole: a node's row reads only its own d); in two on the parallel rows layout, whose
+    rows read the neighbours' d."""
     multiply(k, o, k.d)
     mass_factor, stiffness_factor = factors(k)
     for v in range(k.counts[0]):
         if _running(k):
             k.res[v] = k.res[v] - operator_row(k, o, v, k.d, mass_factor, stiffness_factor)
-    for v in range(k.counts[0]):
-        if _running(k):
-            d = k.coefficients[1 + 2 * step] * k.d[v] + k.coefficients[2 + 2 * step] * (k.block_inverse[v] @ k.res[v])
-            k.d[v] = d
-            z[v] = z[v] + d
+            if ti.static(o.serial):
+                _chebyshev_update(k, z, step, v)
+    if ti.static(not o.serial):
+        for v in range(k.counts[0]):
+            if _running(k):
+                _chebyshev_update(k, z, step, v)
 
 
 @ti.func
-def _coarse_correction(k: ti.template(), z: ti.template()):
-    """z += R P A_c⁻¹ Pᵀ Rᵀ res. The coarse vectors are flat (coarse node c's dofs at 3c, 3c+1, 3c+2),
-    so that the dense product is one scalar dot product per row of A_c⁻¹, 3·nc rows to share out."""
+def _chebyshev_update(k: ti.template(), z: ti.template(), step, v):
+    d = k.coefficients[1 + 2 * step] * k.d[v] + k.coefficients[2 + 2 * step] * (k.block_inverse[v] @ k.res[v])
+    k.d[v] = d
+    z[v] = z[v] + d
+
+
+@ti.func
+def _coarse_correction(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()):
+    """z += R P A_c⁻¹ Pᵀ Rᵀ (r - A z), after `multiply(z)`. The residual is turned by Rᵀ node by node
+    as it is taken (into d, which the next smoothing starts afresh), once rather than at each of
+    the node's up to 4 coarse nodes. The coarse vectors are flat (coarse node c's dofs at 3c,
+    3c+1, 3c+2), so that the dense product is one scalar dot product per row of A_c⁻¹, 3·nc rows
+    to share out."""
+    mass_factor, stiffness_factor = factors(k)
+    for v in range(k.counts[0]):
+        if _running(k):
+            k.d[v] = k.nodal_R[v].transpose() @ (r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor))
     for c in range(k.coarse_count[0]):  # restriction: a gather over the fine nodes around c
         if _running(k):
             s = ti.Vector([0.0, 0.0, 0.0])
             for j in range(k.fine_offsets[c], k.fine_offsets[c + 1]):
                 v, corner = k.fine_entries[j] // 4, k.fine_entries[j] % 4
-                s += k.weights[v][corner] * (k.nodal_R[v].transpose() @ k.res[v])
+                s += k.weights[v][corner] * k.d[v]
             for d in ti.static(range(3)):
                 k.rc[3 * c + d] = s[d]
     for i in range(3 * k.coarse_count[0]):
@@ -362,18 +386,21 @@ def apply(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template()
         # (a kernel's size is what its compilation costs in every process).
         # Skipped whole once converged: its loops would skip their nodes, but not the products.
         # Without a coarse space (BlockJacobi) the cycle is its first smoothing.
-        for stage in range(4):
+        for stage in range(3):
             if not _running(k) or (stage == 1 and not _coarse(k)):
                 break
-            if stage == 0 or stage == 3:
-                _smooth(k, o, r, z, stage == 0)
+            if stage == 0:
+                _smooth(k, o, r, z, True)
             else:
-                _residual(k, o, r, z)
+                multiply(k, o, z)       # for the residual r - A z
                 if stage == 1:
-                    _coarse_correction(k, z)
+                    _coarse_correction(k, o, r, z)
+                else:
+                    _smooth(k, o, r, z, False)
     else:   # parallel loops stay at the kernel's top level
         _smooth(k, o, r, z, True)
-        _residual(k, o, r, z)
-        _coarse_correction(k, z)
+        multiply(k, o, z)
+        _coarse_correction(k, o, r, z)
+        multiply(k, o, z)
         _residual(k, o, r, z)
         _smooth(k, o, r, z, False)
