@@ -327,7 +327,7 @@ def test_soft_soft_detection_matches_brute_force(backend):
 
 def test_jds_stores_h_assembled_by_hand(backend):
     from tissue.contact.constraints import Attachment, JaggedDiagonal, build_rows
-    from tissue.contact.detection import Contacts
+    from tissue.contact.contacts import Contacts
 
     rng = np.random.default_rng(2)
     n0, n1 = 12, 9
@@ -396,7 +396,7 @@ def test_jds_of_one_block_per_row_equals_the_sorted_one(backend):
     is taken as the blocks stand (no sort); it equals H assembled by scipy (body_matrix) and, array
     for array, the JDS the sort builds; body 1 (three blocks on the soft contact's row) is sorted."""
     from tissue.contact.constraints import Attachment, JaggedDiagonal, build_rows
-    from tissue.contact.detection import Contacts
+    from tissue.contact.contacts import Contacts
 
     rng = np.random.default_rng(5)
     n0, n1, k = 10, 8, 7
@@ -434,7 +434,7 @@ def test_jds_of_one_block_per_row_equals_the_sorted_one(backend):
 
 def _surface_contacts(solver, count, seed=0):
     """Fake soft–rigid contacts at `count` surface vertices with random normals."""
-    from tissue.contact.detection import Contacts
+    from tissue.contact.contacts import Contacts
     from tissue.mesh import boundary_faces
 
     rng = np.random.default_rng(seed)
@@ -1147,7 +1147,8 @@ def test_detection_hands_last_steps_hits_at_rest(damped_block):
     step's), also when the hits change (the tilted block settling; measured: kept from step 3 on)."""
     from dataclasses import fields
 
-    from tissue.contact.detection import Contacts, Detector
+    from tissue.contact.contacts import Contacts
+    from tissue.contact.detection import Detector
 
     solver = reset(damped_block)
     points = solver.fem.mesh.points

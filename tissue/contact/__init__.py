@@ -2,6 +2,7 @@
 exact), the frictional contact solver, and the stage that ties them after the free motion.
 
     obstacles.py           rigid obstacles: plane, sphere, capsule, box, triangle mesh; prescribed motion
+    contacts.py            Contacts, the record of a step's contacts; the contact points a surface carries
     detection.py           proximity of surface points to obstacles and to other soft bodies
     constraints.py         H (normal, two tangents per contact; attachments) and its JDS storage
     compliance.py          W = Σ h (H R) A₀⁻¹ (H R)ᵀ by warping, or h H A⁻¹ Hᵀ exactly; the correction
@@ -16,7 +17,8 @@ exact), the frictional contact solver, and the stage that ties them after the fr
 """
 
 from .constraints import Attachment
-from .detection import Contacts, Detector
+from .contacts import Contacts
+from .detection import Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver, natural_map_residual, solve_frictional_contact
 from .layer import ContactLayer, Obstacle

@@ -49,7 +49,8 @@ from ..stats import Stats
 from .compliance import ExactCompliance
 from .warping import WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, jacobian, offsets, with_free_values
-from .detection import Contacts, Detector
+from .contacts import Contacts
+from .detection import Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver, dense_buffer
 from .obstacles import RigidObstacle
