@@ -100,12 +100,13 @@ def test_culled_primitives_give_the_nearest_within_alarm(backend):
     alarm distance: every point finds the nearest of 20 rib capsules and a sphere, as a search
     over all of them does."""
     from scenes.liver_press import rib_segments
-    from tissue.contact.detection import Detector, _primitive_bounds
+    from tissue.contact.detection import Detector
+    from tissue.contact.geometry import primitive_bounds
     from tissue.contact.obstacles import Capsule, RigidObstacle, Sphere
 
     ends = np.array(rib_segments()).reshape(-1, 2, 3)
     ribs = RigidObstacle([Capsule(a, b, 0.006) for a, b in ends] + [Sphere((-0.04, 0.0, 0.01), 0.02)])
-    rows = _primitive_bounds(ribs.bounding_boxes(), 0)
+    rows = primitive_bounds(ribs.bounding_boxes(), 0)
     assert np.unique(rows[:, 12]).tolist() == [5, 10, 15, 20, 21]      # a group per rib, the sphere alone
 
     def gaps(x):

@@ -41,7 +41,8 @@ import taichi as ti
 from .. import backend
 from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
-from .obstacles import BOX, CAPSULE, PLANE, SPHERE
+from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
+                       within_box)
 from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
@@ -52,131 +53,6 @@ def _serial(samples) -> bool:
     """Small problems run each loop on one thread on the CPU: dispatching a few hundred iterations
     to the thread pool costs more than it saves."""
     return backend.current().arch == "cpu" and sum(len(nodes) for nodes, _ in samples) < SERIAL_BELOW_POINTS
-
-
-# --------------------------------------------------------------------------------------------
-# soft–rigid: primitives in Taichi
-# --------------------------------------------------------------------------------------------
-
-@ti.func
-def _p3(prm: ti.template(), k, i):
-    return ti.Vector([prm[k, i], prm[k, i + 1], prm[k, i + 2]])
-
-
-@ti.func
-def _round_point(p, centre, radius):
-    """Signed distance, normal and closest point of a ball (also the capsule around its axis)."""
-    d = p - centre
-    length = d.norm()
-    n = ti.Vector([0.0, 0.0, 1.0])
-    if length > 1e-300:
-        n = d / length
-    c = centre + radius * n
-    return ti.Vector([length - radius, n[0], n[1], n[2], c[0], c[1], c[2]])
-
-
-@ti.func
-def _closest_primitive(prm: ti.template(), k, p):
-    """[gap, normal (3), closest point (3)] of point p to primitive k (all in its frame)."""
-    kind = ti.cast(prm[k, 0], ti.i32)
-    out = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-    if kind == PLANE:
-        o, n = _p3(prm, k, 1), _p3(prm, k, 4)
-        g = (p - o).dot(n)
-        c = p - g * n
-        out = ti.Vector([g, n[0], n[1], n[2], c[0], c[1], c[2]])
-    elif kind == SPHERE:
-        out = _round_point(p, _p3(prm, k, 1), prm[k, 4])
-    elif kind == CAPSULE:
-        a, b = _p3(prm, k, 1), _p3(prm, k, 4)
-        ab = b - a
-        s = ti.min(ti.max((p - a).dot(ab) / ti.max(ab.dot(ab), 1e-300), 0.0), 1.0)
-        out = _round_point(p, a + s * ab, prm[k, 7])
-    elif kind == BOX:
-        centre, half = _p3(prm, k, 1), _p3(prm, k, 4)
-        R = ti.Matrix([[prm[k, 7], prm[k, 8], prm[k, 9]], [prm[k, 10], prm[k, 11], prm[k, 12]],
-                       [prm[k, 13], prm[k, 14], prm[k, 15]]])
-        q = R.transpose() @ (p - centre)
-        excess = ti.abs(q) - half
-        n, c, g = ti.Vector([0.0, 0.0, 1.0]), q, 0.0
-        if excess.max() > 0.0:                      # outside: clamp onto the box
-            c = ti.min(ti.max(q, -half), half)
-            d = q - c
-            g = d.norm()
-            n = d / g
-        else:                                       # inside: leave through the nearest face
-            i = 0
-            for j in ti.static(range(1, 3)):
-                if excess[j] > excess[i]:
-                    i = j
-            side = 1.0 if q[i] >= 0.0 else -1.0
-            n = ti.Vector([0.0, 0.0, 0.0])
-            n[i] = side
-            c[i] = side * half[i]
-            g = excess[i]
-        n, c = R @ n, R @ c + centre
-        out = ti.Vector([g, n[0], n[1], n[2], c[0], c[1], c[2]])
-    return out
-
-
-@ti.func
-def _sample(x: ti.template(), nodes: ti.template(), weights: ti.template(), s):
-    n, w = nodes[s], weights[s]
-    return w[0] * x[n[0]] + w[1] * x[n[1]] + w[2] * x[n[2]]
-
-
-@ti.func
-def closest_on_triangle(p, a, b, c):
-    """Barycentric weights of the point of triangle (a, b, c) closest to p (Ericson, RTCD 5.1.5)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab.dot(ap), ac.dot(ap)
-    bp = p - b
-    d3, d4 = ab.dot(bp), ac.dot(bp)
-    cp = p - c
-    d5, d6 = ab.dot(cp), ac.dot(cp)
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-    w = ti.Vector([0.0, 0.0, 0.0])
-    if d1 <= 0.0 and d2 <= 0.0:
-        w = ti.Vector([1.0, 0.0, 0.0])
-    elif d3 >= 0.0 and d4 <= d3:
-        w = ti.Vector([0.0, 1.0, 0.0])
-    elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        t = d1 / (d1 - d3)
-        w = ti.Vector([1.0 - t, t, 0.0])
-    elif d6 >= 0.0 and d5 <= d6:
-        w = ti.Vector([0.0, 0.0, 1.0])
-    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        t = d2 / (d2 - d6)
-        w = ti.Vector([1.0 - t, 0.0, t])
-    elif va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        w = ti.Vector([0.0, 1.0 - t, t])
-    else:
-        s = 1.0 / (va + vb + vc)
-        w = ti.Vector([1.0 - (vb + vc) * s, vb * s, vc * s])
-    return w
-
-
-@ti.func
-def _near(balls: ti.template(), k, p, alarm):
-    """Whether p may lie within `alarm` of what ball k (centre, radius; < 0: unbounded) bounds."""
-    r = balls[k, 3]
-    d = p - _p3(balls, k, 0)
-    return r < 0.0 or d.dot(d) <= (r + alarm) * (r + alarm)
-
-
-@ti.func
-def _in_box(boxes: ti.template(), k, col, p, reach):
-    """Whether p lies within `reach` of the box in row k's columns col..col+5 (low, high corner)."""
-    d = ti.max(_p3(boxes, k, col) - p, p - _p3(boxes, k, col + 3), 0.0)
-    return d.dot(d) <= reach * reach
-
-
-@ti.func
-def _cell_range(lo, hi, origin, cell, dims):
-    a = ti.max(ti.cast(ti.floor((lo - origin) / cell), ti.i32), 0)
-    b = ti.min(ti.cast(ti.floor((hi - origin) / cell), ti.i32), dims - 1)
-    return a, b
 
 
 # The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
@@ -219,8 +95,8 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
         # the alarm distance and the sample's free motion (with room for rounding: an isometry's
         # distances are the same) cannot pass the test in the obstacle's frame below; the pairs
         # that may are tested there as they are, so the hits do not change.
-        free = _sample(det.xa, det.nodes, det.weights, s)
-        grow = alarm + h * _sample(det.va, det.nodes, det.weights, s).norm()
+        free = sample_point(det.xa, det.nodes, det.weights, s)
+        grow = alarm + h * sample_point(det.va, det.nodes, det.weights, s).norm()
         for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
             d = free - ti.Vector([poses[o, 12], poses[o, 13], poses[o, 14]])
             bound = (poses[o, 15] + grow) * (1.0 + 1e-9)
@@ -230,22 +106,22 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
             R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-            p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
-            moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+            p = R.transpose() @ (sample_point(det.xa, det.nodes, det.weights, s) - t)
+            moved = R.transpose() @ (h * sample_point(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
             reach = alarm + moved.norm()
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounds farther than `reach` skip what they hold, which cannot be within it: the
             # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
-            # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
+            # (see primitive_bounds) the group's, a primitive's box the primitive. Those tested are
             # tested in order, so the nearest (ties: the first) is the one all of them would give.
-            if _near(det.bounds, o, p, reach):
+            if within_ball(det.bounds, o, p, reach):
                 k = det.prm_offsets[o]
                 while k < det.prm_offsets[o + 1]:
                     end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                    if _in_box(det.prm_bounds, k, 6, p, reach):
+                    if within_box(det.prm_bounds, k, 6, p, reach):
                         for j in range(k, end):
-                            if _in_box(det.prm_bounds, j, 0, p, reach):
-                                r = _closest_primitive(det.prm, j, p)
+                            if within_box(det.prm_bounds, j, 0, p, reach):
+                                r = closest_on_primitive(det.prm, j, p)
                                 if r[0] < best[0]:
                                     best = r
                     k = end
@@ -302,7 +178,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     ti.loop_config(serialize=serial)
     for f in range(nf):                         # count the triangles of each cell
         a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-        i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+        i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
         for i in range(i0[0], i1[0] + 1):       # (nested: an inner ti.ndrange divides for its indices)
             for j in range(i0[1], i1[1] + 1):
                 for k in range(i0[2], i1[2] + 1):
@@ -318,7 +194,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     for f in range(nf):                         # fill (order within a cell: any; see below)
         if det.grid_i[4] <= det.ids.shape[0]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-            i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+            i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
             for i in range(i0[0], i1[0] + 1):
                 for j in range(i0[1], i1[1] + 1):
                     for k in range(i0[2], i1[2] + 1):
@@ -333,7 +209,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     ti.loop_config(serialize=serial)
     for s in range(ns):                         # narrow phase
         gap[s, slot] = 1e300
-        p = _sample(det.xa, det.nodes, det.weights, s)
+        p = sample_point(det.xa, det.nodes, det.weights, s)
         ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
         best, best_face = 1e300, -1
         best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
@@ -386,8 +262,9 @@ def read_state(x: ti.types.ndarray(), v: ti.types.ndarray(), h: float, out: ti.t
 def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
     """An ndarray (of n-vectors when n > 0) holding `values` (at least one element).
 
-    The detection data are ndarrays, not fields: `_detect` takes them as ndarray parameters, so it
-    compiles once for every body and scene (a field per body would compile it again for each)."""
+    The detection data are ndarrays, not fields: the detection kernels take them as ndarray
+    parameters, so each compiles once for every body and scene (a field per body would compile it
+    again for each)."""
     values = np.ascontiguousarray(values)
     a = ti.ndarray(ti.types.vector(n, dtype) if n else dtype, max(1, len(values)))
     if len(values):
@@ -420,28 +297,6 @@ class _Surface:
         self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
         self.gap, self.out = gap, out             # its rows of the Detector's _HitBuffer
-
-
-def _primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
-    """(P, 13) rows of an obstacle's primitives (the first at index `start` among all): its box
-    (6), its group's box (6) and the index past its group (1; read at a group's first primitive).
-    Groups are runs of consecutive primitives whose boxes touch the previous one's, at most
-    ⌈√P⌉ long: a rib's pieces, the ribs side by side (a sample beside one rib skips the others)."""
-    group = np.zeros(len(boxes), int)
-    size, first = int(np.ceil(np.sqrt(len(boxes)))), 0        # (first: where the current group starts)
-    for k in range(1, len(boxes)):
-        touch = np.all(boxes[k, :3] <= boxes[k - 1, 3:]) and np.all(boxes[k - 1, :3] <= boxes[k, 3:])
-        if not touch or k - first >= size:
-            first = k
-        group[k] = group[k - 1] + (first == k)
-    rows = np.zeros((len(boxes), 13))
-    for g in np.unique(group):
-        members = np.flatnonzero(group == g)
-        rows[members, :6] = boxes[members]
-        rows[members, 6:9] = boxes[members, :3].min(axis=0)
-        rows[members, 9:12] = boxes[members, 3:].max(axis=0)
-        rows[members, 12] = start + members[-1] + 1
-    return rows
 
 
 class _HitBuffer:
@@ -511,7 +366,7 @@ class Detector:
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
             self._prm_bounds.from_numpy(np.concatenate(
-                [_primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
+                [primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
         self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
         if self.obstacles:
