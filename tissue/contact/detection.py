@@ -43,6 +43,7 @@ from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
 from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
                        within_box)
+from .hits import HitBuffer
 from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
@@ -296,40 +297,7 @@ class _Surface:
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
         self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
-        self.gap, self.out = gap, out             # its rows of the Detector's _HitBuffer
-
-
-class _HitBuffer:
-    """Every body's detection output in one buffer, body after body: a row per sample, then one
-    row where a soft launch leaves the room its triangle grid needed (gap[-1]), each row a slot
-    per obstacle and per other body: its gap in `gap`, a hit's other 10 numbers in `array` (see
-    _detect_rigid, _detect_soft; apart, so that finding the hits reads 8 bytes a slot, not the
-    records' cache lines); and what identifies a hit in each row and slot, so that the hits of
-    every body are read at once (a step's few dozen numpy calls once, not once per body and then
-    joined)."""
-
-    def __init__(self, samples, faces, n_obstacles: int, soft_soft: bool, npr):
-        n_bodies = len(samples)
-        slots = max(n_obstacles + (n_bodies - 1 if soft_soft else 0), 1)
-        rows = [len(nodes) + 1 for nodes, _ in samples]
-        start = np.r_[0, np.cumsum(rows)]
-        self.gap = np.full((start[-1], slots), 1e300, npr)     # (in float32: inf)
-        self.array = np.zeros((start[-1], slots, 10), npr)
-        self.outs = [(self.gap[start[b]:start[b + 1]], self.array[start[b]:start[b + 1]]) for b in range(n_bodies)]
-        self.room_rows = start[1:] - 1
-        self.body = np.repeat(np.arange(n_bodies, dtype=np.int32), rows)
-        self.sample = np.concatenate([np.arange(n, dtype=np.int32) for n in rows])
-        self.nodes = np.concatenate([np.r_[nodes, np.zeros((1, 3), np.int32)] for nodes, _ in samples])
-        self.weights = np.concatenate([np.r_[weights, np.zeros((1, 3), npr)] for _, weights in samples])
-        # What each slot of each body's rows touches: obstacle `slot`, or past the obstacles the
-        # other bodies in order; their triangles side by side (body b's from face_offset[b]).
-        self.other = np.tile(np.arange(slots, dtype=np.int32), (n_bodies, 1))
-        for a in range(n_bodies):
-            others = [b for b in range(n_bodies) if b != a] if soft_soft else []
-            self.other[a, n_obstacles:n_obstacles + len(others)] = others
-        self.faces = np.concatenate(faces)
-        self.face_offset = np.r_[0, np.cumsum([len(f) for f in faces])]
-        self.kept = None                          # the last hits without soft ones (Detector._identities)
+        self.gap, self.out = gap, out             # its rows of the Detector's HitBuffer
 
 
 # The detection launch repeats its arguments step after step (the bodies' arrays, the buffers kept
@@ -402,12 +370,12 @@ class Detector:
     def _setup(self, fields_):
         sizes = [f.shape[0] for f in fields_]
         if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
-            self._hits = _HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
+            self._hits = HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
             self._bodies = [_Surface(f, s, n, gap, out, self.real, self._np)
                             for f, s, n, (gap, out) in zip(self.faces, self.samples, sizes, self._hits.outs)]
 
     def detect(self, positions, alarm: float, poses=None, previous_poses=None, velocities=None,
-               dt: float = 0.0) -> "Contacts":
+               dt: float = 0.0) -> Contacts:
         """Contacts of every contact point within `alarm` of an obstacle or another body.
 
         poses / previous_poses: per obstacle (R, t) now and one step earlier (default: identity);
@@ -436,7 +404,7 @@ class Detector:
             for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
                 if obstacle.meshes:
                     self._mesh(a, x, o, obstacle, poses[o], alarm, v is not None)
-        return self._contacts(poses, previous_poses)
+        return self._hits.contacts(poses, previous_poses, self._moving_ids)
 
     def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> None:
         body, no = self._bodies[a], len(self.obstacles)
@@ -503,54 +471,3 @@ class Detector:
         gaps[better] = g[better]
         res[better, :6] = np.column_stack([n @ R.T, c @ R.T + t])[better]
         res[better, 6:9], res[better, 9] = 0.0, -1.0
-
-    def _contacts(self, poses, previous_poses) -> "Contacts":
-        """Every body's hits (the buffer's) as Contacts, ordered by (body, sample, kind, other)
-        (np.nonzero's order over the buffer)."""
-        buffer, no = self._hits, len(self.obstacles)
-        # (none: 1e300, or inf in float32; np.nonzero over the 2-d mask costs twice this)
-        hit = buffer.gap < 1e299
-        hit[buffer.room_rows] = False
-        row, slot = np.divmod(hit.ravel().nonzero()[0], buffer.gap.shape[1])
-        res = buffer.array[row, slot].astype(np.float64, copy=False)
-        soft = slot >= no
-        if soft.any():
-            hits = self._identities(row, slot, soft)
-            face = res[soft, 9].astype(np.int64)
-            hits["triangle"][soft] = buffer.faces[buffer.face_offset[hits["other"][soft]] + face]
-            hits["weights"] = np.where(soft[:, None], res[:, 6:9], 0.0)
-        else:
-            hits = self._rigid_identities(row, slot, soft)
-        point = res[:, 3:6]
-        # The material point of the obstacle now at `point` was, one step earlier, at
-        # R0 R1ᵀ (point - t1) + t0.
-        motion = np.zeros((len(row), 3))
-        for j in self._moving_ids:              # (slot j < no: obstacle j)
-            sel = slot == j
-            if sel.any():
-                (R1, t1), (R0, t0) = poses[j], previous_poses[j]
-                p = point[sel]
-                motion[sel] = p - ((p - t1) @ R1 @ R0.T + t0)
-        return Contacts(**hits, normal=res[:, :3], gap=buffer.gap[row, slot].astype(np.float64, copy=False),
-                        closest=point, other_motion=motion)
-
-    def _identities(self, row, slot, soft) -> dict:
-        """What identifies the hits in the buffer's rows `row` and slots `slot`: their Contacts
-        fields body, sample, nodes, own_weights, other, soft, triangle and weights (those of a hit
-        on an obstacle)."""
-        buffer, k = self._hits, len(row)
-        body = buffer.body[row]
-        return dict(body=body, sample=buffer.sample[row], nodes=buffer.nodes[row],
-                    own_weights=buffer.weights[row].astype(np.float64, copy=False), other=buffer.other[body, slot],
-                    soft=soft, triangle=np.full((k, 3), -1, np.int32), weights=np.zeros((k, 3)))
-
-    def _rigid_identities(self, row, slot, soft) -> dict:
-        """`_identities` of hits on obstacles alone: last step's arrays when the hits are the same
-        (a body at rest; the arrays are never written after), so that the contact stage finds
-        them the same at once."""
-        kept = self._hits.kept
-        if kept is not None and kept[0].tobytes() == row.tobytes() and kept[1].tobytes() == slot.tobytes():
-            return dict(kept[2])
-        hits = self._identities(row, slot, soft)
-        self._hits.kept = (row, slot, hits)
-        return dict(hits)
