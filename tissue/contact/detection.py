@@ -35,6 +35,7 @@ the point back past the obstacle. Soft–soft contacts are found at the free pos
 """
 
 import operator
+from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
@@ -305,6 +306,21 @@ class _Surface:
 _detect_rigid_replayed, _detect_soft_replayed = replayed(_detect_rigid), replayed(_detect_soft)
 
 
+@dataclass
+class _BodyDetection:
+    """Body A's detection in a step: what its launches (and its triangle-mesh obstacles' queries)
+    read besides the Detector's arrays, and where they write."""
+
+    index: int                  # A, among the bodies
+    x: ti.Ndarray               # its positions (3-vectors)
+    v: ti.Ndarray | None        # its velocities: with them, its first launch copies x and x - dt v
+    state: np.ndarray           # ... into this (n, 6) array (Detector.state[A]); without, a stand-in
+    surface: _Surface           # its arrays on the device, and its rows of the hit buffer
+    others: list                # the bodies it is tested against, in its slots' order after the obstacles
+    alarm: float
+    dt: float
+
+
 class Detector:
     """Proximity queries between the soft bodies' surfaces and the rigid obstacles.
 
@@ -398,50 +414,53 @@ class Detector:
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
             self.state = [np.empty((n, 6), np.float64) for n in sizes]
         for a, x in enumerate(fields_):
-            others = [b for b in range(len(fields_)) if b != a] if self.soft_soft else []
             v = None if velocities is None else velocities[a]
-            self._run(a, x, fields_, others, alarm, packed, v, dt)
+            body = _BodyDetection(a, x, v, self._no_state if v is None else self.state[a], self._bodies[a],
+                                  [b for b in range(len(fields_)) if b != a] if self.soft_soft else [], alarm, dt)
+            self._run(body, fields_, packed)
             for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
                 if obstacle.meshes:
-                    self._mesh(a, x, o, obstacle, poses[o], alarm, v is not None)
+                    self._mesh(body, o, obstacle, poses[o])
         return self._hits.contacts(poses, previous_poses, self._moving_ids)
 
-    def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> None:
-        body, no = self._bodies[a], len(self.obstacles)
-        gap, out = body.gap, body.out
+    def _run(self, body: _BodyDetection, fields_, poses) -> None:
+        """Body A's launches: one against the obstacles' primitives and one against each other
+        body (`fields_`: every body's positions); the first also copies its state (with v)."""
+        surface, no = body.surface, len(self.obstacles)
         if not self.has_primitives:
-            gap[:, :no] = 1e300
-        state = self.state[a] if v is not None else self._no_state
-        if not (self.has_primitives or others) or body.n_samples == 0:
-            if v is not None:
-                read_state(x, v, dt, state)
+            surface.gap[:, :no] = 1e300
+        if not (self.has_primitives or body.others) or surface.n_samples == 0:
+            if body.v is not None:
+                read_state(body.x, body.v, body.dt, body.state)
             return
-        launches = [(others[0] if others else a, self.has_primitives, bool(others))]
-        launches += [(b, False, True) for b in others[1:]]
-        own = (x, body.nodes, body.weights, x if v is None else v, self._prm, self._prm_offsets, self._prm_bounds,
-               self._bounds)                     # RIGID_MEMBERS
+        launches = [(body.others[0] if body.others else body.index, self.has_primitives, bool(body.others))]
+        launches += [(b, False, True) for b in body.others[1:]]
+        own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v, self._prm,
+               self._prm_offsets, self._prm_bounds, self._bounds)                     # RIGID_MEMBERS
         for k, (b, rigid, soft) in enumerate(launches):
-            copy_state = int(v is not None and k == 0)
+            copy_state = int(body.v is not None and k == 0)
             if rigid:
-                _detect_rigid_replayed(self._pack((a, None), DETECT_RIGID, own), poses, gap, out, state, alarm, dt,
-                                       copy_state, self.serial)
+                _detect_rigid_replayed(self._pack((body.index, None), DETECT_RIGID, own), poses, surface.gap,
+                                       surface.out, body.state, body.alarm, body.dt, copy_state, self.serial)
             if soft:
-                self._run_soft(a, b, own, fields_[b], gap, out, state, alarm, no + others.index(b), dt,
-                               0 if rigid else copy_state)
+                self._run_soft(body, own, b, fields_[b], 0 if rigid else copy_state)
 
-    def _run_soft(self, a, b, own, xb, gap, out, state, alarm, slot, dt, copy_state) -> None:
-        """Body a's launch against body b's surface (`own`: body a's arrays of the launch, RIGID_MEMBERS)."""
+    def _run_soft(self, body: _BodyDetection, own, b, xb, copy_state) -> None:
+        """Body A's launch against body b's surface at positions xb (`own`: body A's arrays of the
+        launch, RIGID_MEMBERS)."""
         other = self._bodies[b]
         if other.cell is None:                        # the median triangle extent, at the first call
             tri = xb.to_numpy().astype(np.float64)[other.faces_np]
             other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
+        slot = len(self.obstacles) + body.others.index(b)
+        gap = body.surface.gap
         while True:
-            pack = self._pack((a, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets, other.vf,
-                                               other.normals, other.start, other.cursor, ids, other.grid_i,
-                                               other.grid_f))     # SOFT_MEMBERS
-            _detect_soft_replayed(pack, gap, out, state, other.cell + 2 * alarm, alarm, slot, dt, copy_state,
-                                  self.serial)
+            pack = self._pack((body.index, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets,
+                                                        other.vf, other.normals, other.start, other.cursor, ids,
+                                                        other.grid_i, other.grid_f))     # SOFT_MEMBERS
+            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell + 2 * body.alarm, body.alarm,
+                                  slot, body.dt, copy_state, self.serial)
             needed = int(gap[-1, slot])
             if needed <= ids.shape[0]:
                 return
@@ -454,20 +473,21 @@ class Detector:
         kept = self._packs[pair] = kept_pack(self._packs.get(pair), kind, arrays)
         return kept[0]
 
-    def _mesh(self, a, x, o, obstacle, pose, alarm, moving) -> None:
-        """Hits on a triangle-mesh obstacle (open3d), by the kernel's rule for primitives: within
-        `alarm` at the free position or at the step's start (`moving`: self.state holds it)."""
-        nodes, weights = self.samples[a]
+    def _mesh(self, body: _BodyDetection, o, obstacle, pose) -> None:
+        """Body A's hits on triangle-mesh obstacle o (open3d), by the kernel's rule for primitives:
+        within the alarm distance at the free position or, given the velocities, at the step's
+        start (body.state holds it)."""
+        nodes, weights = self.samples[body.index]
         R, t = pose
-        points = np.einsum("sj,sji->si", weights, x.to_numpy()[nodes])
+        points = np.einsum("sj,sji->si", weights, body.x.to_numpy()[nodes])
         local = (points - t) @ R
         g, n, c = obstacle.mesh_closest(local)
         start_gap = g
-        if moving:
-            start = self.state[a][:, 3:]
+        if body.v is not None:
+            start = body.state[:, 3:]
             start_gap = g - np.einsum("si,si->s", n @ R.T, points - np.einsum("sj,sji->si", weights, start[nodes]))
-        gaps, res = self._bodies[a].gap[:-1, o], self._bodies[a].out[:-1, o]
-        better = (np.minimum(g, start_gap) <= alarm) & (g < gaps)
+        gaps, res = body.surface.gap[:-1, o], body.surface.out[:-1, o]
+        better = (np.minimum(g, start_gap) <= body.alarm) & (g < gaps)
         gaps[better] = g[better]
         res[better, :6] = np.column_stack([n @ R.T, c @ R.T + t])[better]
         res[better, 6:9], res[better, 9] = 0.0, -1.0
