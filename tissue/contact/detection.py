@@ -19,7 +19,8 @@ What a contact point and a contact are: tissue.contact.contacts.
               B and of B against A).
 
 For one body this is a kernel launch against the obstacles (`_detect_rigid`) and one against each
-other soft body (`_detect_soft`), writing into a buffer kept between calls; the first also copies
+other soft body (`_detect_soft`), writing into a buffer kept between calls (`HitBuffer`,
+tissue.contact.hits, which reads the hits as Contacts); the first also copies
 the body's positions and start-of-step positions for the constraints. Two kernels, not one with
 template switches: each compiles once for every scene, so a scene with rigid contacts only and one
 with soft–soft contacts too fill Taichi's offline cache for each other.
@@ -30,12 +31,14 @@ g − n·(p − p₀): the free motion ignores contacts, so a body resting on a 
 (15.7 mm at h = 0.04 s), and a plate resting on its top would be that far away at the free
 positions, out of any alarm distance, and pass through it unseen. The row is still linearised at
 the free position (its gap there, positive), so it pushes only where the correction would bring
-the point back past the obstacle. Soft–soft contacts are found at the free positions only. Results come back as numpy arrays, sorted by
-(body, sample, kind, other), so runs are deterministic.
+the point back past the obstacle. Soft–soft contacts are found at the free positions only.
+Results come back as numpy arrays, sorted by (body, sample, kind, other), so runs are
+deterministic.
 """
 
 import operator
 from dataclasses import dataclass
+
 import numpy as np
 import taichi as ti
 
@@ -275,7 +278,7 @@ def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
 
 
 class _Surface:
-    """One body's constant detection data on the device, and its output buffer."""
+    """One body's constant detection data on the device, and its rows of the hit buffer."""
 
     def __init__(self, faces, samples, n_nodes, gap, out, real, npr):
         nodes, weights = samples
