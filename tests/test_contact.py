@@ -100,12 +100,13 @@ def test_culled_primitives_give_the_nearest_within_alarm(backend):
     alarm distance: every point finds the nearest of 20 rib capsules and a sphere, as a search
     over all of them does."""
     from scenes.liver_press import rib_segments
-    from tissue.contact.detection import Detector, _primitive_bounds
+    from tissue.contact.detection import Detector
+    from tissue.contact.geometry import primitive_bounds
     from tissue.contact.obstacles import Capsule, RigidObstacle, Sphere
 
     ends = np.array(rib_segments()).reshape(-1, 2, 3)
     ribs = RigidObstacle([Capsule(a, b, 0.006) for a, b in ends] + [Sphere((-0.04, 0.0, 0.01), 0.02)])
-    rows = _primitive_bounds(ribs.bounding_boxes(), 0)
+    rows = primitive_bounds(ribs.bounding_boxes(), 0)
     assert np.unique(rows[:, 12]).tolist() == [5, 10, 15, 20, 21]      # a group per rib, the sphere alone
 
     def gaps(x):
@@ -327,7 +328,7 @@ def test_soft_soft_detection_matches_brute_force(backend):
 
 def test_jds_stores_h_assembled_by_hand(backend):
     from tissue.contact.constraints import Attachment, JaggedDiagonal, build_rows
-    from tissue.contact.detection import Contacts
+    from tissue.contact.contacts import Contacts
 
     rng = np.random.default_rng(2)
     n0, n1 = 12, 9
@@ -396,7 +397,7 @@ def test_jds_of_one_block_per_row_equals_the_sorted_one(backend):
     is taken as the blocks stand (no sort); it equals H assembled by scipy (body_matrix) and, array
     for array, the JDS the sort builds; body 1 (three blocks on the soft contact's row) is sorted."""
     from tissue.contact.constraints import Attachment, JaggedDiagonal, build_rows
-    from tissue.contact.detection import Contacts
+    from tissue.contact.contacts import Contacts
 
     rng = np.random.default_rng(5)
     n0, n1, k = 10, 8, 7
@@ -434,7 +435,7 @@ def test_jds_of_one_block_per_row_equals_the_sorted_one(backend):
 
 def _surface_contacts(solver, count, seed=0):
     """Fake soft–rigid contacts at `count` surface vertices with random normals."""
-    from tissue.contact.detection import Contacts
+    from tissue.contact.contacts import Contacts
     from tissue.mesh import boundary_faces
 
     rng = np.random.default_rng(seed)
@@ -1147,7 +1148,8 @@ def test_detection_hands_last_steps_hits_at_rest(damped_block):
     step's), also when the hits change (the tilted block settling; measured: kept from step 3 on)."""
     from dataclasses import fields
 
-    from tissue.contact.detection import Contacts, Detector
+    from tissue.contact.contacts import Contacts
+    from tissue.contact.detection import Detector
 
     solver = reset(damped_block)
     points = solver.fem.mesh.points

@@ -2,7 +2,10 @@
 exact), the frictional contact solver, and the stage that ties them after the free motion.
 
     obstacles.py           rigid obstacles: plane, sphere, capsule, box, triangle mesh; prescribed motion
+    contacts.py            Contacts, the record of a step's contacts; the contact points a surface carries
     detection.py           proximity of surface points to obstacles and to other soft bodies
+    geometry.py            ... the kernels' geometry: closest points, bounds tests, grid cells
+    hits.py                ... what the kernels found: every body's hits in one buffer, read as Contacts
     constraints.py         H (normal, two tangents per contact; attachments) and its JDS storage
     compliance.py          W = Σ h (H R) A₀⁻¹ (H R)ᵀ by warping, or h H A⁻¹ Hᵀ exactly; the correction
     frictional_contact.py  the frictional contact problem (Coulomb friction): the solvers' entry point and dispatch
@@ -16,7 +19,8 @@ exact), the frictional contact solver, and the stage that ties them after the fr
 """
 
 from .constraints import Attachment
-from .detection import Contacts, Detector
+from .contacts import Contacts
+from .detection import Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver, natural_map_residual, solve_frictional_contact
 from .layer import ContactLayer, Obstacle

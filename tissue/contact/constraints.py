@@ -34,7 +34,7 @@ import taichi as ti
 
 from .. import backend
 from ..errors import TissueError
-from .detection import Contacts
+from .contacts import Contacts
 
 
 @dataclass(frozen=True)

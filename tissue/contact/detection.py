@@ -1,14 +1,7 @@
 """Proximity detection: the contact points of each soft body's surface that lie within the
 contact (alarm) distance of a rigid obstacle or of another soft body's surface.
 
-Contact points ("samples") are fixed points of a body's surface triangles, p = Σ uⱼ x[nⱼ]: its
-vertices, and optionally its edge midpoints and triangle centroids (`surface_samples`), which keep
-obstacles thinner than the mesh spacing (a probe, a rib) from slipping between the vertices (the
-paper samples the surfaces with Layered Depth Images for the same reason). A contact is a sample
-p, the closest point c on the other surface, the unit normal n (from the other surface toward the
-side where p belongs) and the gap g = n·(p - c) (negative when p has penetrated). For soft–soft
-contacts c is a point of a triangle of the other body with barycentric weights w, so
-g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
+What a contact point and a contact are: tissue.contact.contacts.
 
   soft–rigid  one thread per sample, for each obstacle the nearest of its primitives in the
               obstacle's frame, skipping the obstacle whose bounding ball, and the primitives
@@ -26,7 +19,8 @@ g = n·(Σ uⱼ xⱼ - Σ wⱼ yⱼ) is linear in both bodies' nodes.
               B and of B against A).
 
 For one body this is a kernel launch against the obstacles (`_detect_rigid`) and one against each
-other soft body (`_detect_soft`), writing into a buffer kept between calls; the first also copies
+other soft body (`_detect_soft`), writing into a buffer kept between calls (`HitBuffer`,
+tissue.contact.hits, which reads the hits as Contacts); the first also copies
 the body's positions and start-of-step positions for the constraints. Two kernels, not one with
 template switches: each compiles once for every scene, so a scene with rigid contacts only and one
 with soft–soft contacts too fill Taichi's offline cache for each other.
@@ -37,24 +31,26 @@ g − n·(p − p₀): the free motion ignores contacts, so a body resting on a 
 (15.7 mm at h = 0.04 s), and a plate resting on its top would be that far away at the free
 positions, out of any alarm distance, and pass through it unseen. The row is still linearised at
 the free position (its gap there, positive), so it pushes only where the correction would bring
-the point back past the obstacle. Soft–soft contacts are found at the free positions only. Results come back as numpy arrays, sorted by
-(body, sample, kind, other), so runs are deterministic.
+the point back past the obstacle. Soft–soft contacts are found at the free positions only.
+Results come back as numpy arrays, sorted by (body, sample, kind, other), so runs are
+deterministic.
 """
 
 import operator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
 
 from .. import backend
-from ..errors import TissueError
 from ..launch import kept_pack, replayed
-from .obstacles import BOX, CAPSULE, PLANE, SPHERE
+from .contacts import Contacts, surface_samples
+from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
+                       within_box)
+from .hits import HitBuffer
 from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
-SAMPLINGS = ("vertices", "edges", "faces")
 SERIAL_BELOW_POINTS = 30_000      # contact points: below, the CPU runs the detection loops on one thread
 
 
@@ -62,197 +58,6 @@ def _serial(samples) -> bool:
     """Small problems run each loop on one thread on the CPU: dispatching a few hundred iterations
     to the thread pool costs more than it saves."""
     return backend.current().arch == "cpu" and sum(len(nodes) for nodes, _ in samples) < SERIAL_BELOW_POINTS
-
-
-def surface_samples(faces: np.ndarray, sampling: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
-    """(nodes (s, 3) int32, weights (s, 3)) of a surface's contact points: its vertices (v, v, v;
-    1, 0, 0), then for "edges" and "faces" its edge midpoints, then for "faces" its centroids."""
-    if sampling not in SAMPLINGS:
-        raise TissueError(f"sampling: unknown {sampling!r}; expected one of {SAMPLINGS}")
-    v = np.unique(faces)
-    nodes, weights = [np.repeat(v[:, None], 3, axis=1)], [np.tile([1.0, 0.0, 0.0], (len(v), 1))]
-    if sampling in ("edges", "faces"):
-        e = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
-        nodes.append(e[:, [0, 1, 1]])
-        weights.append(np.tile([0.5, 0.5, 0.0], (len(e), 1)))
-    if sampling == "faces":
-        nodes.append(faces)
-        weights.append(np.full((len(faces), 3), 1.0 / 3.0))
-    return np.concatenate(nodes).astype(np.int32), np.concatenate(weights)
-
-
-@dataclass
-class Contacts:
-    """One row per contact point (all arrays have the same first dimension k)."""
-
-    body: np.ndarray            # (k,) soft body the contact point belongs to
-    sample: np.ndarray          # (k,) index of the point among that body's samples (its identity)
-    nodes: np.ndarray           # (k, 3) the body's nodes carrying the point (a vertex: v, v, v)
-    own_weights: np.ndarray     # (k, 3) its weights on them (a vertex: 1, 0, 0)
-    other: np.ndarray           # (k,) obstacle index (rigid) or body index (soft)
-    soft: np.ndarray            # (k,) bool: the other side is a soft body
-    triangle: np.ndarray        # (k, 3) nodes of the other body's triangle (soft), else -1
-    weights: np.ndarray         # (k, 3) barycentric weights of c on that triangle (soft), else 0
-    normal: np.ndarray          # (k, 3) unit normal, from the other surface toward the point
-    gap: np.ndarray             # (k,) signed distance along the normal (< 0: penetration)
-    closest: np.ndarray         # (k, 3) the closest point c on the other surface
-    other_motion: np.ndarray    # (k, 3) rigid: displacement of the material point at c over the step
-
-    def __len__(self) -> int:
-        return len(self.body)
-
-    @property
-    def vertex(self) -> np.ndarray:
-        """The node of each contact point that is a vertex (the first carrier node otherwise)."""
-        return self.nodes[:, 0]
-
-    @staticmethod
-    def empty() -> "Contacts":
-        i, f = np.int32, float
-        return Contacts(*(np.zeros(s, dtype=d) for s, d in (
-            (0, i), (0, i), ((0, 3), i), ((0, 3), f), (0, i), (0, bool), ((0, 3), i), ((0, 3), f),
-            ((0, 3), f), (0, f), ((0, 3), f), ((0, 3), f))))
-
-    @staticmethod
-    def concatenate(parts: list["Contacts"]) -> "Contacts":
-        parts = [p for p in parts if len(p)]
-        if not parts:
-            return Contacts.empty()
-        c = Contacts(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Contacts)))
-        return c.take(np.lexsort((c.other, c.soft, c.sample, c.body)))
-
-    def take(self, index) -> "Contacts":
-        return Contacts(*(getattr(self, f.name)[index] for f in fields(Contacts)))
-
-    def keys(self) -> np.ndarray:
-        """An integer identity per contact (body, sample, kind, other), stable across steps."""
-        return ((self.body.astype(np.int64) << 40) | (self.sample.astype(np.int64) << 12)
-                | (self.soft.astype(np.int64) << 11) | self.other.astype(np.int64))
-
-
-# --------------------------------------------------------------------------------------------
-# soft–rigid: primitives in Taichi
-# --------------------------------------------------------------------------------------------
-
-@ti.func
-def _p3(prm: ti.template(), k, i):
-    return ti.Vector([prm[k, i], prm[k, i + 1], prm[k, i + 2]])
-
-
-@ti.func
-def _round_point(p, centre, radius):
-    """Signed distance, normal and closest point of a ball (also the capsule around its axis)."""
-    d = p - centre
-    length = d.norm()
-    n = ti.Vector([0.0, 0.0, 1.0])
-    if length > 1e-300:
-        n = d / length
-    c = centre + radius * n
-    return ti.Vector([length - radius, n[0], n[1], n[2], c[0], c[1], c[2]])
-
-
-@ti.func
-def _closest_primitive(prm: ti.template(), k, p):
-    """[gap, normal (3), closest point (3)] of point p to primitive k (all in its frame)."""
-    kind = ti.cast(prm[k, 0], ti.i32)
-    out = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-    if kind == PLANE:
-        o, n = _p3(prm, k, 1), _p3(prm, k, 4)
-        g = (p - o).dot(n)
-        c = p - g * n
-        out = ti.Vector([g, n[0], n[1], n[2], c[0], c[1], c[2]])
-    elif kind == SPHERE:
-        out = _round_point(p, _p3(prm, k, 1), prm[k, 4])
-    elif kind == CAPSULE:
-        a, b = _p3(prm, k, 1), _p3(prm, k, 4)
-        ab = b - a
-        s = ti.min(ti.max((p - a).dot(ab) / ti.max(ab.dot(ab), 1e-300), 0.0), 1.0)
-        out = _round_point(p, a + s * ab, prm[k, 7])
-    elif kind == BOX:
-        centre, half = _p3(prm, k, 1), _p3(prm, k, 4)
-        R = ti.Matrix([[prm[k, 7], prm[k, 8], prm[k, 9]], [prm[k, 10], prm[k, 11], prm[k, 12]],
-                       [prm[k, 13], prm[k, 14], prm[k, 15]]])
-        q = R.transpose() @ (p - centre)
-        excess = ti.abs(q) - half
-        n, c, g = ti.Vector([0.0, 0.0, 1.0]), q, 0.0
-        if excess.max() > 0.0:                      # outside: clamp onto the box
-            c = ti.min(ti.max(q, -half), half)
-            d = q - c
-            g = d.norm()
-            n = d / g
-        else:                                       # inside: leave through the nearest face
-            i = 0
-            for j in ti.static(range(1, 3)):
-                if excess[j] > excess[i]:
-                    i = j
-            side = 1.0 if q[i] >= 0.0 else -1.0
-            n = ti.Vector([0.0, 0.0, 0.0])
-            n[i] = side
-            c[i] = side * half[i]
-            g = excess[i]
-        n, c = R @ n, R @ c + centre
-        out = ti.Vector([g, n[0], n[1], n[2], c[0], c[1], c[2]])
-    return out
-
-
-@ti.func
-def _sample(x: ti.template(), nodes: ti.template(), weights: ti.template(), s):
-    n, w = nodes[s], weights[s]
-    return w[0] * x[n[0]] + w[1] * x[n[1]] + w[2] * x[n[2]]
-
-
-@ti.func
-def closest_on_triangle(p, a, b, c):
-    """Barycentric weights of the point of triangle (a, b, c) closest to p (Ericson, RTCD 5.1.5)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = ab.dot(ap), ac.dot(ap)
-    bp = p - b
-    d3, d4 = ab.dot(bp), ac.dot(bp)
-    cp = p - c
-    d5, d6 = ab.dot(cp), ac.dot(cp)
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-    w = ti.Vector([0.0, 0.0, 0.0])
-    if d1 <= 0.0 and d2 <= 0.0:
-        w = ti.Vector([1.0, 0.0, 0.0])
-    elif d3 >= 0.0 and d4 <= d3:
-        w = ti.Vector([0.0, 1.0, 0.0])
-    elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        t = d1 / (d1 - d3)
-        w = ti.Vector([1.0 - t, t, 0.0])
-    elif d6 >= 0.0 and d5 <= d6:
-        w = ti.Vector([0.0, 0.0, 1.0])
-    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        t = d2 / (d2 - d6)
-        w = ti.Vector([1.0 - t, 0.0, t])
-    elif va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        w = ti.Vector([0.0, 1.0 - t, t])
-    else:
-        s = 1.0 / (va + vb + vc)
-        w = ti.Vector([1.0 - (vb + vc) * s, vb * s, vc * s])
-    return w
-
-
-@ti.func
-def _near(balls: ti.template(), k, p, alarm):
-    """Whether p may lie within `alarm` of what ball k (centre, radius; < 0: unbounded) bounds."""
-    r = balls[k, 3]
-    d = p - _p3(balls, k, 0)
-    return r < 0.0 or d.dot(d) <= (r + alarm) * (r + alarm)
-
-
-@ti.func
-def _in_box(boxes: ti.template(), k, col, p, reach):
-    """Whether p lies within `reach` of the box in row k's columns col..col+5 (low, high corner)."""
-    d = ti.max(_p3(boxes, k, col) - p, p - _p3(boxes, k, col + 3), 0.0)
-    return d.dot(d) <= reach * reach
-
-
-@ti.func
-def _cell_range(lo, hi, origin, cell, dims):
-    a = ti.max(ti.cast(ti.floor((lo - origin) / cell), ti.i32), 0)
-    b = ti.min(ti.cast(ti.floor((hi - origin) / cell), ti.i32), dims - 1)
-    return a, b
 
 
 # The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
@@ -295,8 +100,8 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
         # the alarm distance and the sample's free motion (with room for rounding: an isometry's
         # distances are the same) cannot pass the test in the obstacle's frame below; the pairs
         # that may are tested there as they are, so the hits do not change.
-        free = _sample(det.xa, det.nodes, det.weights, s)
-        grow = alarm + h * _sample(det.va, det.nodes, det.weights, s).norm()
+        free = sample_point(det.xa, det.nodes, det.weights, s)
+        grow = alarm + h * sample_point(det.va, det.nodes, det.weights, s).norm()
         for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
             d = free - ti.Vector([poses[o, 12], poses[o, 13], poses[o, 14]])
             bound = (poses[o, 15] + grow) * (1.0 + 1e-9)
@@ -306,22 +111,22 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
             R = ti.Matrix([[poses[o, 0], poses[o, 1], poses[o, 2]], [poses[o, 3], poses[o, 4], poses[o, 5]],
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
-            p = R.transpose() @ (_sample(det.xa, det.nodes, det.weights, s) - t)
-            moved = R.transpose() @ (h * _sample(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+            p = R.transpose() @ (sample_point(det.xa, det.nodes, det.weights, s) - t)
+            moved = R.transpose() @ (h * sample_point(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
             reach = alarm + moved.norm()
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounds farther than `reach` skip what they hold, which cannot be within it: the
             # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
-            # (see _primitive_bounds) the group's, a primitive's box the primitive. Those tested are
+            # (see primitive_bounds) the group's, a primitive's box the primitive. Those tested are
             # tested in order, so the nearest (ties: the first) is the one all of them would give.
-            if _near(det.bounds, o, p, reach):
+            if within_ball(det.bounds, o, p, reach):
                 k = det.prm_offsets[o]
                 while k < det.prm_offsets[o + 1]:
                     end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                    if _in_box(det.prm_bounds, k, 6, p, reach):
+                    if within_box(det.prm_bounds, k, 6, p, reach):
                         for j in range(k, end):
-                            if _in_box(det.prm_bounds, j, 0, p, reach):
-                                r = _closest_primitive(det.prm, j, p)
+                            if within_box(det.prm_bounds, j, 0, p, reach):
+                                r = closest_on_primitive(det.prm, j, p)
                                 if r[0] < best[0]:
                                     best = r
                     k = end
@@ -378,7 +183,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     ti.loop_config(serialize=serial)
     for f in range(nf):                         # count the triangles of each cell
         a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-        i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+        i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
         for i in range(i0[0], i1[0] + 1):       # (nested: an inner ti.ndrange divides for its indices)
             for j in range(i0[1], i1[1] + 1):
                 for k in range(i0[2], i1[2] + 1):
@@ -394,7 +199,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     for f in range(nf):                         # fill (order within a cell: any; see below)
         if det.grid_i[4] <= det.ids.shape[0]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-            i0, i1 = _cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+            i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
             for i in range(i0[0], i1[0] + 1):
                 for j in range(i0[1], i1[1] + 1):
                     for k in range(i0[2], i1[2] + 1):
@@ -409,7 +214,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     ti.loop_config(serialize=serial)
     for s in range(ns):                         # narrow phase
         gap[s, slot] = 1e300
-        p = _sample(det.xa, det.nodes, det.weights, s)
+        p = sample_point(det.xa, det.nodes, det.weights, s)
         ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
         best, best_face = 1e300, -1
         best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
@@ -462,8 +267,9 @@ def read_state(x: ti.types.ndarray(), v: ti.types.ndarray(), h: float, out: ti.t
 def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
     """An ndarray (of n-vectors when n > 0) holding `values` (at least one element).
 
-    The detection data are ndarrays, not fields: `_detect` takes them as ndarray parameters, so it
-    compiles once for every body and scene (a field per body would compile it again for each)."""
+    The detection data are ndarrays, not fields: the detection kernels take them as ndarray
+    parameters, so each compiles once for every body and scene (a field per body would compile it
+    again for each)."""
     values = np.ascontiguousarray(values)
     a = ti.ndarray(ti.types.vector(n, dtype) if n else dtype, max(1, len(values)))
     if len(values):
@@ -472,7 +278,7 @@ def _array(values: np.ndarray, dtype, n: int = 0) -> ti.Ndarray:
 
 
 class _Surface:
-    """One body's constant detection data on the device, and its output buffer."""
+    """One body's constant detection data on the device, and its rows of the hit buffer."""
 
     def __init__(self, faces, samples, n_nodes, gap, out, real, npr):
         nodes, weights = samples
@@ -495,67 +301,27 @@ class _Surface:
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
         self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
-        self.gap, self.out = gap, out             # its rows of the Detector's _HitBuffer
-
-
-def _primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
-    """(P, 13) rows of an obstacle's primitives (the first at index `start` among all): its box
-    (6), its group's box (6) and the index past its group (1; read at a group's first primitive).
-    Groups are runs of consecutive primitives whose boxes touch the previous one's, at most
-    ⌈√P⌉ long: a rib's pieces, the ribs side by side (a sample beside one rib skips the others)."""
-    group = np.zeros(len(boxes), int)
-    size, first = int(np.ceil(np.sqrt(len(boxes)))), 0        # (first: where the current group starts)
-    for k in range(1, len(boxes)):
-        touch = np.all(boxes[k, :3] <= boxes[k - 1, 3:]) and np.all(boxes[k - 1, :3] <= boxes[k, 3:])
-        if not touch or k - first >= size:
-            first = k
-        group[k] = group[k - 1] + (first == k)
-    rows = np.zeros((len(boxes), 13))
-    for g in np.unique(group):
-        members = np.flatnonzero(group == g)
-        rows[members, :6] = boxes[members]
-        rows[members, 6:9] = boxes[members, :3].min(axis=0)
-        rows[members, 9:12] = boxes[members, 3:].max(axis=0)
-        rows[members, 12] = start + members[-1] + 1
-    return rows
-
-
-class _HitBuffer:
-    """Every body's detection output in one buffer, body after body: a row per sample, then one
-    row where a soft launch leaves the room its triangle grid needed (gap[-1]), each row a slot
-    per obstacle and per other body: its gap in `gap`, a hit's other 10 numbers in `array` (see
-    _detect_rigid, _detect_soft; apart, so that finding the hits reads 8 bytes a slot, not the
-    records' cache lines); and what identifies a hit in each row and slot, so that the hits of
-    every body are read at once (a step's few dozen numpy calls once, not once per body and then
-    joined)."""
-
-    def __init__(self, samples, faces, n_obstacles: int, soft_soft: bool, npr):
-        n_bodies = len(samples)
-        slots = max(n_obstacles + (n_bodies - 1 if soft_soft else 0), 1)
-        rows = [len(nodes) + 1 for nodes, _ in samples]
-        start = np.r_[0, np.cumsum(rows)]
-        self.gap = np.full((start[-1], slots), 1e300, npr)     # (in float32: inf)
-        self.array = np.zeros((start[-1], slots, 10), npr)
-        self.outs = [(self.gap[start[b]:start[b + 1]], self.array[start[b]:start[b + 1]]) for b in range(n_bodies)]
-        self.room_rows = start[1:] - 1
-        self.body = np.repeat(np.arange(n_bodies, dtype=np.int32), rows)
-        self.sample = np.concatenate([np.arange(n, dtype=np.int32) for n in rows])
-        self.nodes = np.concatenate([np.r_[nodes, np.zeros((1, 3), np.int32)] for nodes, _ in samples])
-        self.weights = np.concatenate([np.r_[weights, np.zeros((1, 3), npr)] for _, weights in samples])
-        # What each slot of each body's rows touches: obstacle `slot`, or past the obstacles the
-        # other bodies in order; their triangles side by side (body b's from face_offset[b]).
-        self.other = np.tile(np.arange(slots, dtype=np.int32), (n_bodies, 1))
-        for a in range(n_bodies):
-            others = [b for b in range(n_bodies) if b != a] if soft_soft else []
-            self.other[a, n_obstacles:n_obstacles + len(others)] = others
-        self.faces = np.concatenate(faces)
-        self.face_offset = np.r_[0, np.cumsum([len(f) for f in faces])]
-        self.kept = None                          # the last hits without soft ones (Detector._identities)
+        self.gap, self.out = gap, out             # its rows of the Detector's HitBuffer
 
 
 # The detection launch repeats its arguments step after step (the bodies' arrays, the buffers kept
 # here): replayed, it skips Taichi's setting of its ~30 arguments.
 _detect_rigid_replayed, _detect_soft_replayed = replayed(_detect_rigid), replayed(_detect_soft)
+
+
+@dataclass
+class _BodyDetection:
+    """Body A's detection in a step: what its launches (and its triangle-mesh obstacles' queries)
+    read besides the Detector's arrays, and where they write."""
+
+    index: int                  # A, among the bodies
+    x: ti.Ndarray               # its positions (3-vectors)
+    v: ti.Ndarray | None        # its velocities: with them, its first launch copies x and x - dt v
+    state: np.ndarray           # ... into this (n, 6) array (Detector.state[A]); without, a stand-in
+    surface: _Surface           # its arrays on the device, and its rows of the hit buffer
+    others: list                # the bodies it is tested against, in its slots' order after the obstacles
+    alarm: float
+    dt: float
 
 
 class Detector:
@@ -587,7 +353,7 @@ class Detector:
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
             self._prm_bounds.from_numpy(np.concatenate(
-                [_primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
+                [primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
         self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
         if self.obstacles:
@@ -623,12 +389,12 @@ class Detector:
     def _setup(self, fields_):
         sizes = [f.shape[0] for f in fields_]
         if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
-            self._hits = _HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
+            self._hits = HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
             self._bodies = [_Surface(f, s, n, gap, out, self.real, self._np)
                             for f, s, n, (gap, out) in zip(self.faces, self.samples, sizes, self._hits.outs)]
 
     def detect(self, positions, alarm: float, poses=None, previous_poses=None, velocities=None,
-               dt: float = 0.0) -> "Contacts":
+               dt: float = 0.0) -> Contacts:
         """Contacts of every contact point within `alarm` of an obstacle or another body.
 
         poses / previous_poses: per obstacle (R, t) now and one step earlier (default: identity);
@@ -651,50 +417,53 @@ class Detector:
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
             self.state = [np.empty((n, 6), np.float64) for n in sizes]
         for a, x in enumerate(fields_):
-            others = [b for b in range(len(fields_)) if b != a] if self.soft_soft else []
             v = None if velocities is None else velocities[a]
-            self._run(a, x, fields_, others, alarm, packed, v, dt)
+            body = _BodyDetection(a, x, v, self._no_state if v is None else self.state[a], self._bodies[a],
+                                  [b for b in range(len(fields_)) if b != a] if self.soft_soft else [], alarm, dt)
+            self._run(body, fields_, packed)
             for o, obstacle in enumerate(self.obstacles):   # triangle meshes: open3d on the host
                 if obstacle.meshes:
-                    self._mesh(a, x, o, obstacle, poses[o], alarm, v is not None)
-        return self._contacts(poses, previous_poses)
+                    self._mesh(body, o, obstacle, poses[o])
+        return self._hits.contacts(poses, previous_poses, self._moving_ids)
 
-    def _run(self, a, x, fields_, others, alarm, poses, v=None, dt=0.0) -> None:
-        body, no = self._bodies[a], len(self.obstacles)
-        gap, out = body.gap, body.out
+    def _run(self, body: _BodyDetection, fields_, poses) -> None:
+        """Body A's launches: one against the obstacles' primitives and one against each other
+        body (`fields_`: every body's positions); the first also copies its state (with v)."""
+        surface, no = body.surface, len(self.obstacles)
         if not self.has_primitives:
-            gap[:, :no] = 1e300
-        state = self.state[a] if v is not None else self._no_state
-        if not (self.has_primitives or others) or body.n_samples == 0:
-            if v is not None:
-                read_state(x, v, dt, state)
+            surface.gap[:, :no] = 1e300
+        if not (self.has_primitives or body.others) or surface.n_samples == 0:
+            if body.v is not None:
+                read_state(body.x, body.v, body.dt, body.state)
             return
-        launches = [(others[0] if others else a, self.has_primitives, bool(others))]
-        launches += [(b, False, True) for b in others[1:]]
-        own = (x, body.nodes, body.weights, x if v is None else v, self._prm, self._prm_offsets, self._prm_bounds,
-               self._bounds)                     # RIGID_MEMBERS
+        launches = [(body.others[0] if body.others else body.index, self.has_primitives, bool(body.others))]
+        launches += [(b, False, True) for b in body.others[1:]]
+        own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v, self._prm,
+               self._prm_offsets, self._prm_bounds, self._bounds)                     # RIGID_MEMBERS
         for k, (b, rigid, soft) in enumerate(launches):
-            copy_state = int(v is not None and k == 0)
+            copy_state = int(body.v is not None and k == 0)
             if rigid:
-                _detect_rigid_replayed(self._pack((a, None), DETECT_RIGID, own), poses, gap, out, state, alarm, dt,
-                                       copy_state, self.serial)
+                _detect_rigid_replayed(self._pack((body.index, None), DETECT_RIGID, own), poses, surface.gap,
+                                       surface.out, body.state, body.alarm, body.dt, copy_state, self.serial)
             if soft:
-                self._run_soft(a, b, own, fields_[b], gap, out, state, alarm, no + others.index(b), dt,
-                               0 if rigid else copy_state)
+                self._run_soft(body, own, b, fields_[b], 0 if rigid else copy_state)
 
-    def _run_soft(self, a, b, own, xb, gap, out, state, alarm, slot, dt, copy_state) -> None:
-        """Body a's launch against body b's surface (`own`: body a's arrays of the launch, RIGID_MEMBERS)."""
+    def _run_soft(self, body: _BodyDetection, own, b, xb, copy_state) -> None:
+        """Body A's launch against body b's surface at positions xb (`own`: body A's arrays of the
+        launch, RIGID_MEMBERS)."""
         other = self._bodies[b]
         if other.cell is None:                        # the median triangle extent, at the first call
             tri = xb.to_numpy().astype(np.float64)[other.faces_np]
             other.cell = max(float(np.median((tri.max(axis=1) - tri.min(axis=1)).max(axis=1))), 1e-12)
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
+        slot = len(self.obstacles) + body.others.index(b)
+        gap = body.surface.gap
         while True:
-            pack = self._pack((a, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets, other.vf,
-                                               other.normals, other.start, other.cursor, ids, other.grid_i,
-                                               other.grid_f))     # SOFT_MEMBERS
-            _detect_soft_replayed(pack, gap, out, state, other.cell + 2 * alarm, alarm, slot, dt, copy_state,
-                                  self.serial)
+            pack = self._pack((body.index, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets,
+                                                        other.vf, other.normals, other.start, other.cursor, ids,
+                                                        other.grid_i, other.grid_f))     # SOFT_MEMBERS
+            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell + 2 * body.alarm, body.alarm,
+                                  slot, body.dt, copy_state, self.serial)
             needed = int(gap[-1, slot])
             if needed <= ids.shape[0]:
                 return
@@ -707,71 +476,21 @@ class Detector:
         kept = self._packs[pair] = kept_pack(self._packs.get(pair), kind, arrays)
         return kept[0]
 
-    def _mesh(self, a, x, o, obstacle, pose, alarm, moving) -> None:
-        """Hits on a triangle-mesh obstacle (open3d), by the kernel's rule for primitives: within
-        `alarm` at the free position or at the step's start (`moving`: self.state holds it)."""
-        nodes, weights = self.samples[a]
+    def _mesh(self, body: _BodyDetection, o, obstacle, pose) -> None:
+        """Body A's hits on triangle-mesh obstacle o (open3d), by the kernel's rule for primitives:
+        within the alarm distance at the free position or, given the velocities, at the step's
+        start (body.state holds it)."""
+        nodes, weights = self.samples[body.index]
         R, t = pose
-        points = np.einsum("sj,sji->si", weights, x.to_numpy()[nodes])
+        points = np.einsum("sj,sji->si", weights, body.x.to_numpy()[nodes])
         local = (points - t) @ R
         g, n, c = obstacle.mesh_closest(local)
         start_gap = g
-        if moving:
-            start = self.state[a][:, 3:]
+        if body.v is not None:
+            start = body.state[:, 3:]
             start_gap = g - np.einsum("si,si->s", n @ R.T, points - np.einsum("sj,sji->si", weights, start[nodes]))
-        gaps, res = self._bodies[a].gap[:-1, o], self._bodies[a].out[:-1, o]
-        better = (np.minimum(g, start_gap) <= alarm) & (g < gaps)
+        gaps, res = body.surface.gap[:-1, o], body.surface.out[:-1, o]
+        better = (np.minimum(g, start_gap) <= body.alarm) & (g < gaps)
         gaps[better] = g[better]
         res[better, :6] = np.column_stack([n @ R.T, c @ R.T + t])[better]
         res[better, 6:9], res[better, 9] = 0.0, -1.0
-
-    def _contacts(self, poses, previous_poses) -> "Contacts":
-        """Every body's hits (the buffer's) as Contacts, ordered by (body, sample, kind, other)
-        (np.nonzero's order over the buffer)."""
-        buffer, no = self._hits, len(self.obstacles)
-        # (none: 1e300, or inf in float32; np.nonzero over the 2-d mask costs twice this)
-        hit = buffer.gap < 1e299
-        hit[buffer.room_rows] = False
-        row, slot = np.divmod(hit.ravel().nonzero()[0], buffer.gap.shape[1])
-        res = buffer.array[row, slot].astype(np.float64, copy=False)
-        soft = slot >= no
-        if soft.any():
-            hits = self._identities(row, slot, soft)
-            face = res[soft, 9].astype(np.int64)
-            hits["triangle"][soft] = buffer.faces[buffer.face_offset[hits["other"][soft]] + face]
-            hits["weights"] = np.where(soft[:, None], res[:, 6:9], 0.0)
-        else:
-            hits = self._rigid_identities(row, slot, soft)
-        point = res[:, 3:6]
-        # The material point of the obstacle now at `point` was, one step earlier, at
-        # R0 R1ᵀ (point - t1) + t0.
-        motion = np.zeros((len(row), 3))
-        for j in self._moving_ids:              # (slot j < no: obstacle j)
-            sel = slot == j
-            if sel.any():
-                (R1, t1), (R0, t0) = poses[j], previous_poses[j]
-                p = point[sel]
-                motion[sel] = p - ((p - t1) @ R1 @ R0.T + t0)
-        return Contacts(**hits, normal=res[:, :3], gap=buffer.gap[row, slot].astype(np.float64, copy=False),
-                        closest=point, other_motion=motion)
-
-    def _identities(self, row, slot, soft) -> dict:
-        """What identifies the hits in the buffer's rows `row` and slots `slot`: their Contacts
-        fields body, sample, nodes, own_weights, other, soft, triangle and weights (those of a hit
-        on an obstacle)."""
-        buffer, k = self._hits, len(row)
-        body = buffer.body[row]
-        return dict(body=body, sample=buffer.sample[row], nodes=buffer.nodes[row],
-                    own_weights=buffer.weights[row].astype(np.float64, copy=False), other=buffer.other[body, slot],
-                    soft=soft, triangle=np.full((k, 3), -1, np.int32), weights=np.zeros((k, 3)))
-
-    def _rigid_identities(self, row, slot, soft) -> dict:
-        """`_identities` of hits on obstacles alone: last step's arrays when the hits are the same
-        (a body at rest; the arrays are never written after), so that the contact stage finds
-        them the same at once."""
-        kept = self._hits.kept
-        if kept is not None and kept[0].tobytes() == row.tobytes() and kept[1].tobytes() == slot.tobytes():
-            return dict(kept[2])
-        hits = self._identities(row, slot, soft)
-        self._hits.kept = (row, slot, hits)
-        return dict(hits)

@@ -49,7 +49,8 @@ from ..stats import Stats
 from .compliance import ExactCompliance
 from .warping import WarpedCompliance
 from .constraints import Attachment, ConstraintRows, JaggedDiagonal, jacobian, offsets, with_free_values
-from .detection import Contacts, Detector
+from .contacts import Contacts
+from .detection import Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver, dense_buffer
 from .obstacles import RigidObstacle
@@ -419,7 +420,7 @@ class ContactStage:
 
     def _keys(self, contacts: Contacts) -> np.ndarray:
         """contacts.keys(): the kept rows' when detection handed last step's arrays they are made
-        from (hits at rest, tissue.contact.detection)."""
+        from (hits at rest, tissue.contact.hits)."""
         kept = self._kept
         if kept is not None:
             c = kept.contacts
@@ -625,7 +626,7 @@ class _KeptRows:
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     """a and b hold the same numbers bit for bit (np.array_equal would take -0.0 for 0.0, and
     costs several times more on arrays of a few dozen contacts); the same array (detection's
-    hits at rest, kept: tissue.contact.detection) does."""
+    hits at rest, kept: tissue.contact.hits) does."""
     return a is b or (a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes())
 
 
