@@ -399,7 +399,7 @@ class Detector:
 
         poses / previous_poses: per obstacle (R, t) now and one step earlier (default: identity);
         the second gives the displacement of the touched material point (for friction).
-        velocities (per body a Taichi field, with `dt`): also read each body's positions x and
+        velocities (per body its solver's velocity ndarray, with `dt`): also read each body's positions x and
         x - dt v into `self.state[b]` ((n, 6) numpy) in the same launches."""
         fields_ = [self._field(b, p) for b, p in enumerate(positions)]
         self._setup(fields_)
