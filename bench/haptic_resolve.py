@@ -12,7 +12,13 @@ reported in N. Per commit: median, p90, p99 and max over the ticks, pooled over 
 round, and the first tick of each problem alone (from the step's λ); the 1-minute load average
 before and after.
 
+With --sweeps, this checkout alone for each cap on a tick's sweeps: the CPU µs per tick, and how far
+each tick's rendered force is from the converged solution of the tick's problem (the re-solve
+continued from where the tick stopped, 1e-11 tolerance), in N: why a tick has as many sweeps as
+it has.
+
     python -m bench.haptic_resolve [--other 52c806e] [--rounds 3] [--out haptic_resolve]
+    python -m bench.haptic_resolve --sweeps 10 20 30 60 90 [--out haptic_resolve_sweeps]
 """
 
 import argparse
@@ -41,12 +47,15 @@ from tissue.haptics.lcp import HapticSolver
 from tissue.haptics.loop import unpack
 saved = np.load(os.environ["TISSUE_BENCH_PROBLEMS"])
 ticks, drift = int(os.environ["TISSUE_BENCH_TICKS"]), np.array(json.loads(os.environ["TISSUE_BENCH_DRIFT"]))
-solver = HapticSolver()
+solver = HapticSolver(max_sweeps=int(os.environ["TISSUE_BENCH_SWEEPS"]))
 solver.warm()
-cpu, sweeps, springs = [], [], []
+converged = HapticSolver(max_sweeps=100_000, tolerance=1e-11) if os.environ["TISSUE_BENCH_CONVERGED"] else None
+cpu, sweeps, springs, error = [], [], [], []
 for name in saved.files:
     p = unpack(saved[name])
     solver.load(p)
+    if converged is not None:
+        converged.load(p)
     for t in range(ticks):
         position = p.device_position + drift * (t + 1) / ticks
         a = time.thread_time_ns()
@@ -54,7 +63,11 @@ for name in saved.files:
         cpu.append((time.thread_time_ns() - a) / 1e3)
         sweeps.append(f.sweeps)
         springs.append(f.springs.ravel().tolist())
-print("RESULT " + json.dumps({"cpu_us": cpu, "sweeps": sweeps, "springs": springs}))
+        if converged is not None:
+            converged.r[:] = solver.r
+            error.append(float(np.abs(converged.solve(position, p.device_orientation, p.device_jaw).springs
+                                      - f.springs).max()))
+print("RESULT " + json.dumps({"cpu_us": cpu, "sweeps": sweeps, "springs": springs, "error_n": error}))
 """
 
 
@@ -75,9 +88,10 @@ def problems(path: Path) -> int:
     return len(packed)
 
 
-def measure(checkout: Path, path: Path) -> dict:
+def measure(checkout: Path, path: Path, sweeps: int = 30, converged: bool = False) -> dict:
     env = dict(os.environ, PYTHONPATH=str(checkout), TISSUE_BENCH_PROBLEMS=str(path),
-               TISSUE_BENCH_TICKS=str(TICKS), TISSUE_BENCH_DRIFT=json.dumps(DRIFT.tolist()))
+               TISSUE_BENCH_TICKS=str(TICKS), TISSUE_BENCH_DRIFT=json.dumps(DRIFT.tolist()),
+               TISSUE_BENCH_SWEEPS=str(sweeps), TISSUE_BENCH_CONVERGED="1" if converged else "")
     done = subprocess.run([sys.executable, "-c", CHILD], cwd=checkout, env=env, capture_output=True, text=True)
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
     if done.returncode != 0 or not lines:
@@ -100,12 +114,33 @@ def summary(runs: list[dict]) -> dict:
             "ticks_per_round": int(cpu.shape[1])}
 
 
+def sweep_caps(args, info, load, path, count) -> None:
+    """--sweeps: per cap, CPU µs per tick and the rendered force's distance from the converged one."""
+    from bench.common import ROOT
+
+    caps = {}
+    for cap in args.sweeps:
+        run = measure(ROOT, path, cap, converged=True)
+        error = np.array(run["error_n"])
+        caps[str(cap)] = {"cpu_us": stats(run["cpu_us"]), "error_n": {"median": float(np.median(error)),
+                          "p99": float(np.percentile(error, 99)), "max": float(error.max())},
+                          "load_1min": run["load_1min"]}
+        print(f"{cap:>4} sweeps: CPU µs median {caps[str(cap)]['cpu_us']['median']:.1f}, "
+              f"p99 {caps[str(cap)]['cpu_us']['p99']:.1f}; |F - converged| median {np.median(error):.1e}, "
+              f"p99 {np.percentile(error, 99):.1e}, max {error.max():.1e} N", flush=True)
+    load.append(os.getloadavg()[0])
+    write_results(args.out or "haptic_resolve_sweeps", dict(machine=info, problems=count, ticks_per_problem=TICKS,
+                                                            drift_m=DRIFT.tolist(), load_1min=load, caps=caps))
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--other", default="52c806e", help="the commit to compare with (default: 52c806e, the "
                         "re-solve recomputing each contact's row of W every sweep)")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--out", default="haptic_resolve", help="the results' name under bench/results")
+    parser.add_argument("--sweeps", type=int, nargs="+", help="this checkout alone with these caps on a tick's sweeps")
+    parser.add_argument("--out", help="the results' name under bench/results (default: haptic_resolve, "
+                        "haptic_resolve_sweeps with --sweeps)")
     args = parser.parse_args(argv)
 
     info = machine()
@@ -114,6 +149,8 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory(prefix="tissue-haptic-resolve-") as tmp:
         path = Path(tmp) / "problems.npz"
         count = problems(path)
+        if args.sweeps:
+            return sweep_caps(args, info, load, path, count)
         other, runs = alternate_with_commit(
             args.other, args.rounds, lambda checkout: measure(checkout, path),
             lambda run: f"CPU µs median {np.median(run['cpu_us']):.1f}, p99 {np.percentile(run['cpu_us'], 99):.1f}",
@@ -132,7 +169,7 @@ def main(argv=None) -> None:
               f"sweeps median {result[name]['sweeps_median']:.0f}")
     print(f"rendered force: largest difference {result['rendered_force_difference_n']:.2e} N "
           f"(of {result['rendered_force_largest_n']:.2f} N); load {load[0]:.2f} -> {load[1]:.2f}")
-    write_results(args.out, dict(machine=info, other_commit=other, rounds=args.rounds, problems=count,
+    write_results(args.out or "haptic_resolve", dict(machine=info, other_commit=other, rounds=args.rounds, problems=count,
                                  ticks_per_problem=TICKS, drift_m=DRIFT.tolist(), load_1min=load, **result))
 
 
