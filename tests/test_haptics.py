@@ -133,6 +133,46 @@ def test_still_device_gives_the_simulations_force(backend):
     assert np.linalg.norm(f.contact - contact) <= 1e-6 * np.linalg.norm(contact)
 
 
+def test_re_solve_of_a_grasp_matches_the_stages_solver(backend):
+    """liver_grasp's restricted problem (400-tetrahedron liver and stomach, the 450-row band's
+    contact settings, mid-pull; most restricted contacts apart, the re-solve's sweeps skip their
+    columns of W) re-solved for a device moved 0.6 mm: converged, it is the solution of the stage's
+    own solver (semi-smooth Newton, tissue.contact.frictional_contact) on the same moved problem,
+    and its natural-map residual in numpy (tissue.contact.cone) is the solver's tolerance."""
+    from scenes.liver_grasp import LiverGrasp
+    from tissue.contact.cone import natural_map_residual
+    from tissue.contact.frictional_contact import solve_frictional_contact
+    from tissue.haptics import HapticSolver, restrict
+    from tissue.simulation import Simulation
+
+    sim = Simulation(LiverGrasp().with_overrides(["liver.tets=400", "stomach.tets=400", "contact.sampling=faces",
+                                                  "contact.distance=0.007"]), arch="cpu", precision="f64")
+    stage = next(s for s in sim.stages if s.name == "contact").stage
+    for _ in range(45):
+        sim.step()
+    p = restrict(stage)
+    pushed = p.lam.reshape(-1, 3)[:, 0] > 0
+    assert p.n >= 20 and 0 < pushed.sum() < p.n / 2                # measured 29 contacts, 5 pushed
+    pose = stage.instruments[0].pose
+    position = pose.position + np.array([5e-4, -2e-4, 3e-4])
+    moved = p.follow[:, None] * (p.targets(position, pose.orientation, pose.jaw) - p.target)
+    q = p.q + p.J @ moved.ravel()
+    haptic = HapticSolver(max_sweeps=10_000, tolerance=1e-12)
+    haptic.warm()
+    haptic.load(p)
+    f = haptic.solve(position, pose.orientation, pose.jaw)
+    r = haptic.r[:3 * p.n] / haptic.scale
+    assert f.sweeps < 10_000                                        # measured 257
+    assert natural_map_residual(p.W, q, p.mu, r) <= 1e-11           # measured 8.8e-13
+    reference, info = solve_frictional_contact(p.W, q, p.mu, tol=1e-12, max_iterations=100, method="newton",
+                                               r0=p.lam)
+    assert info.converged
+    # Measured 4.6e-10 of λ's largest (0.016), 5e-10 relative on the contact force (0.09 N).
+    assert np.abs(r - reference).max() <= 1e-9 * np.abs(reference).max()
+    contact = (p.J.T @ reference).reshape(-1, 3).sum(axis=0) / p.h
+    assert np.linalg.norm(f.contact - contact) <= 1e-8 * np.linalg.norm(contact)
+
+
 def test_probe_force_converges_to_the_series_springs(backend):
     """Frictionless plate pressed 4 mm below the top of a block (E A / L = 500 N/m) through a
     coupling of 500 N/m: at rest the device feels d K_hap K_b / (K_hap + K_b) = 1 N, in the

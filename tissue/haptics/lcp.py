@@ -35,7 +35,7 @@ import numpy as np
 import taichi as ti
 
 from ..contact.delassus import FactoredDelassus
-from ..contact.cone import contact_error2, local_solve
+from ..contact.cone import contact_error2, local_solve, vector_at
 from ..errors import TissueError
 from ..launch import replayed
 
@@ -146,33 +146,49 @@ OUT_SWEEPS, OUT_ERROR2, OUT_IMPULSE = 10, 11, 12     # OUT_IMPULSE: 3 per jaw (J
 IO_SIZE = 18
 
 
+@ti.func
+def _add_column(Wt: ti.template(), u: ti.template(), m, k, d):
+    """u += W[:, contact k's columns] d, skipped for d = 0 (a contact apart that stays apart)."""
+    if d[0] != 0.0 or d[1] != 0.0 or d[2] != 0.0:
+        for l in range(m):
+            u[l] += Wt[3 * k, l] * d[0] + Wt[3 * k + 1, l] * d[1] + Wt[3 * k + 2, l] * d[2]
+
+
 @ti.kernel
-def _resolve(W: ti.types.ndarray(ndim=2), q: ti.types.ndarray(ndim=1), J: ti.types.ndarray(ndim=2),
-             mu: ti.types.ndarray(ndim=1), r: ti.types.ndarray(ndim=1), io: ti.types.ndarray(ndim=1)):
-    """Gauss-Seidel on δ = (q + J dx) + W r from r, on one thread (see the module docstring)."""
+def _resolve(Wt: ti.types.ndarray(ndim=2), q: ti.types.ndarray(ndim=1), J: ti.types.ndarray(ndim=2),
+             mu: ti.types.ndarray(ndim=1), r: ti.types.ndarray(ndim=1), u: ti.types.ndarray(ndim=1),
+             io: ti.types.ndarray(ndim=1)):
+    """Gauss-Seidel on u = (q + J dx) + W r from r, on one thread (see the module docstring).
+
+    Wt is W transposed (W's columns as rows). u is kept up to date as r changes, column by column:
+    most restricted contacts are apart (r = 0) and stay so, and those cost a sweep their 3×3 solve
+    only, instead of a row of W each (the sum u_i = (q + J dx)_i + W_i r, what the sweep computed
+    before, in another order)."""
     ti.loop_config(serialize=True)
     for _ in range(1):
         n, jaws, max_sweeps = ti.cast(io[N], ti.i32), ti.cast(io[JAWS], ti.i32), ti.cast(io[SWEEPS], ti.i32)
+        m = 3 * n
+        for l in range(m):
+            s = q[l]
+            for c in range(3 * jaws):
+                s += J[l, c] * io[DX + c]
+            u[l] = s
+        for k in range(n):
+            _add_column(Wt, u, m, k, vector_at(r, k))
         sweeps, est = 0, 0.0
         while sweeps < max_sweeps:
             est = 0.0
             for i in range(n):
-                ui = ti.Vector([0.0, 0.0, 0.0])
-                A = ti.Matrix.zero(float, 3, 3)
-                for a in ti.static(range(3)):
-                    s = q[3 * i + a]
-                    for c in range(3 * jaws):
-                        s += J[3 * i + a, c] * io[DX + c]
-                    for l in range(3 * n):
-                        s += W[3 * i + a, l] * r[l]
-                    ui[a] = s
-                    for b in ti.static(range(3)):
-                        A[a, b] = W[3 * i + a, 3 * i + b]
-                ri = ti.Vector([r[3 * i], r[3 * i + 1], r[3 * i + 2]])
-                est += contact_error2(ri, ui, mu[i])
-                rnew = local_solve(A, ui - A @ ri, mu[i])
-                for a in ti.static(range(3)):
-                    r[3 * i + a] = rnew[a]
+                ui, ri = vector_at(u, i), vector_at(r, i)
+                if ri[0] != 0.0 or ri[1] != 0.0 or ri[2] != 0.0 or ui[0] < 0.0:   # else apart, and stays so
+                    A = ti.Matrix.zero(float, 3, 3)
+                    for a, b in ti.static(ti.ndrange(3, 3)):
+                        A[a, b] = Wt[3 * i + b, 3 * i + a]
+                    est += contact_error2(ri, ui, mu[i])
+                    rnew = local_solve(A, ui - A @ ri, mu[i])
+                    _add_column(Wt, u, m, i, rnew - ri)
+                    for a in ti.static(range(3)):
+                        r[3 * i + a] = rnew[a]
             sweeps += 1
             if est <= io[TOL2]:
                 break
@@ -180,7 +196,7 @@ def _resolve(W: ti.types.ndarray(ndim=2), q: ti.types.ndarray(ndim=1), J: ti.typ
         io[OUT_ERROR2] = est
         for c in range(3 * jaws):
             s = 0.0
-            for l in range(3 * n):
+            for l in range(m):
                 s += J[l, c] * r[l]
             io[OUT_IMPULSE + c] = s
 
@@ -224,7 +240,7 @@ class HapticSolver:
     def __init__(self, max_contacts: int = MAX_CONTACTS, max_sweeps: int = MAX_SWEEPS, tolerance: float = TOLERANCE):
         m = 3 * max_contacts
         self.capacity, self.max_sweeps, self.tolerance = max_contacts, int(max_sweeps), float(tolerance)
-        self.W, self.q, self.r = np.zeros((m, m)), np.zeros(m), np.zeros(m)
+        self.Wt, self.q, self.r, self.u = np.zeros((m, m)), np.zeros(m), np.zeros(m), np.zeros(m)   # Wt: W transposed
         self.J, self.mu = np.zeros((m, 3 * MAX_JAWS)), np.zeros(max_contacts)
         self.io = np.zeros(IO_SIZE)
         self.problem, self.scale = None, 1.0
@@ -236,10 +252,10 @@ class HapticSolver:
             raise TissueError(f"haptics: {n} contacts exceed the haptic solver's capacity {self.capacity}")
         # The problem on W / w̄ (w̄ the mean of its diagonal), reactions w̄ λ in metres, as the stage's.
         self.scale = float(np.mean(np.diagonal(problem.W))) if n else 1.0
-        self.W[:m, :m] = problem.W / self.scale
+        self.Wt[:m, :m] = problem.W.T / self.scale
         t = np.flatnonzero(problem.mu == 0)             # frictionless: any positive tangent diagonal
         for j in (1, 2):
-            self.W[3 * t + j, 3 * t + j] = self.W[3 * t, 3 * t]
+            self.Wt[3 * t + j, 3 * t + j] = self.Wt[3 * t, 3 * t]
         self.q[:m], self.r[:m], self.mu[:n] = problem.q, problem.lam * self.scale, problem.mu
         self.J[:m, :3 * problem.jaws] = problem.J
         self.io[:] = 0.0
@@ -250,13 +266,13 @@ class HapticSolver:
 
     def warm(self) -> None:
         """Compile (or load from the cache) and replay once, on a one-contact problem."""
-        saved = self.W[:3, :3].copy(), self.io.copy()
-        self.W[:3, :3] = np.eye(3)
+        saved = self.Wt[:3, :3].copy(), self.io.copy()
+        self.Wt[:3, :3] = np.eye(3)
         self.io[:] = 0.0
         self.io[N], self.io[JAWS], self.io[SWEEPS] = 1, 1, 1
-        RESOLVE(self.W, self.q, self.J, self.mu, self.r, self.io)
-        RESOLVE(self.W, self.q, self.J, self.mu, self.r, self.io)
-        self.W[:3, :3], self.io[:] = saved
+        RESOLVE(self.Wt, self.q, self.J, self.mu, self.r, self.u, self.io)
+        RESOLVE(self.Wt, self.q, self.J, self.mu, self.r, self.u, self.io)
+        self.Wt[:3, :3], self.io[:] = saved
 
     def solve(self, position, orientation, jaw: float) -> HapticForce:
         """The force for the device at this pose (between the loaded step and the next)."""
@@ -265,7 +281,7 @@ class HapticSolver:
         moved = p.follow[:, None] * (targets - p.target)              # g Δ per jaw
         if p.n:
             self.io[DX:DX + 3 * p.jaws] = moved.ravel()
-            RESOLVE(self.W, self.q, self.J, self.mu, self.r, self.io)
+            RESOLVE(self.Wt, self.q, self.J, self.mu, self.r, self.u, self.io)
             impulse = self.io[OUT_IMPULSE:OUT_IMPULSE + 3 * p.jaws] / self.scale
             sweeps, residual = int(self.io[OUT_SWEEPS]), float(np.sqrt(self.io[OUT_ERROR2]))
         else:
