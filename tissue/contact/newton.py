@@ -82,10 +82,10 @@ JACOBI_ITERATIONS = 100  # ... and where no LU serves: GMRES preconditioned by J
                          # this many iterations, before a fresh LU
 FORCING = (1e-3, 0.1)    # ... to a relative residual 0.9 (|Φ_k| / |Φ_k-1|)² clipped to this (Eisenstat-Walker)
 NORMAL_RHO = 10.0        # ρ_n / ρ_t: any ρ_n > 0 has the same solutions; a larger one weighs the normal velocities
-                         # more in Φ and its merit. Where liver_press falls back to Newton (10-16 closing contacts,
-                         # W among them near singular), ×10 took 6-15 Newton steps where ×1 took 14-31, from the
-                         # same Gauss-Seidel start; ρ_t × 10 as well did no better there and failed (300 steps)
-                         # on a singular soft-body problem from zero (tests), ρ_t alone × 10 did worse
+                         # more in Φ and its merit. On the four of liver_press's Newton fallbacks that crawled (10-14
+                         # closing contacts, W among them near singular) ×10 took 6-18 Newton steps where ×1 took
+                         # 14-31, from the same Gauss-Seidel start; ρ_t × 10 as well did no better there and failed
+                         # (300 steps) on a singular soft-body problem from zero (tests); ρ_t alone × 10 did worse
 
 
 _I2 = np.eye(2)
