@@ -4,8 +4,8 @@ finish: many strongly coupled contacts, more rows than the degrees of freedom th
 singular or nearly so), where a sweep's progress falls with W's conditioning and Newton's does not.
 
 Problem and stopping rule: those of tissue.contact.frictional_contact (u = W r + q, Coulomb's law
-per contact, the natural-map residual). Per contact, with ρ_t = 3 / tr W_ii, ρ_n = NORMAL_RHO ρ_t and
-r̃_n = r_n - ρ_n u_n, r̃_t = r_t - ρ_t u_t,
+per contact, the natural-map residual). Per contact, with ρ_t = 3 / tr W_ii, ρ_n = NORMAL_RHO ρ_t
+(below SINGLE_ROWS rows; else ρ_t) and r̃_n = r_n - ρ_n u_n, r̃_t = r_t - ρ_t u_t,
 
     Φ_n = r_n - max(0, r̃_n),     Φ_t = r_t - P_{disk(μ max(0, r̃_n))}(r̃_t),
 
@@ -81,21 +81,24 @@ REUSE_ITERATIONS = 12    # ... within this many iterations (else a fresh LU),
 JACOBI_ITERATIONS = 100  # ... and where no LU serves: GMRES preconditioned by J's 3×3 diagonal blocks, within
                          # this many iterations, before a fresh LU
 FORCING = (1e-3, 0.1)    # ... to a relative residual 0.9 (|Φ_k| / |Φ_k-1|)² clipped to this (Eisenstat-Walker)
-NORMAL_RHO = 10.0        # ρ_n / ρ_t: any ρ_n > 0 has the same solutions; a larger one weighs the normal velocities
-                         # more in Φ and its merit. On the four of liver_press's Newton fallbacks that crawled (10-14
-                         # closing contacts, W among them near singular) ×10 took 6-18 Newton steps where ×1 took
-                         # 14-31, from the same Gauss-Seidel start; ρ_t × 10 as well did no better there and failed
-                         # (300 steps) on a singular soft-body problem from zero (tests); ρ_t alone × 10 did worse
+NORMAL_RHO = 10.0        # ρ_n / ρ_t below SINGLE_ROWS rows (1 from there on): any ρ_n > 0 has the same solutions; a
+                         # larger one weighs the normal velocities more in Φ and its merit. On the four of
+                         # liver_press's Newton fallbacks that crawled (10-14 closing contacts, W among them near
+                         # singular) ×10 took 6-18 Newton steps where ×1 took 14-31, from the same Gauss-Seidel
+                         # start; ρ_t × 10 as well did no better there and failed (300 steps) on a singular soft-body
+                         # problem from zero (tests); ρ_t alone × 10 did worse. On the press plate (2,382-3,465 rows)
+                         # ×10 changed more contacts' states between Newton steps, GMRES on the last LU failed more
+                         # often, and its solves took 11-16 % more CPU (the same Newton steps)
 
 
 _I2 = np.eye(2)
 
 
 def _rho(diagonal_blocks: np.ndarray) -> np.ndarray:
-    """(ρ_n, ρ_t, ρ_t) per contact (n, 3): ρ_t = 3 / tr W_ii, ρ_n = NORMAL_RHO ρ_t (the Alart–Curnier
-    augmentation, on W's scale)."""
+    """(ρ_n, ρ_t, ρ_t) per contact (n, 3): ρ_t = 3 / tr W_ii, ρ_n = NORMAL_RHO ρ_t below SINGLE_ROWS
+    rows, else ρ_t (the Alart–Curnier augmentation, on W's scale)."""
     rho = 3.0 / np.trace(diagonal_blocks, axis1=1, axis2=2)
-    return rho[:, None] * np.array([NORMAL_RHO, 1.0, 1.0])
+    return rho[:, None] * np.array([NORMAL_RHO if 3 * len(rho) < SINGLE_ROWS else 1.0, 1.0, 1.0])
 
 
 def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray, jacobian: bool = True):
