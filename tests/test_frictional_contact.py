@@ -577,7 +577,8 @@ def test_alart_curnier_jacobian_matches_finite_differences():
     r.reshape(n, 3)[calm, 0] = rng.uniform(0.5, 1.5, len(calm))
     r.reshape(n, 3)[calm, 1:] = 0.01 * rng.standard_normal((len(calm), 2))
     q.reshape(n, 3)[calm, 1:] = -(W @ r).reshape(n, 3)[calm, 1:] + 1e-3 * rng.standard_normal((len(calm), 2))
-    mu, rho = rng.uniform(0.3, 1.0, n), rng.uniform(0.5, 2.0, n)
+    mu = rng.uniform(0.3, 1.0, n)
+    rho = rng.uniform(0.5, 2.0, n)[:, None] * np.array([1.0, 1.3, 1.3])   # (ρ_n, ρ_t, ρ_t), apart: newton._rho's form
 
     def phi(r):
         return _alart_curnier(r.reshape(n, 3), (W @ r + q).reshape(n, 3), mu, rho, jacobian=False)[0].ravel()
@@ -590,7 +591,7 @@ def test_alart_curnier_jacobian_matches_finite_differences():
         fd = (phi(r + eps * d) - phi(r - eps * d)) / (2 * eps)
         jac = np.einsum("iab,ib->ia", A, d.reshape(n, 3)) + np.einsum("iab,ib->ia", B, (W @ d).reshape(n, 3))
         np.testing.assert_allclose(jac.ravel(), fd, atol=1e-6 * np.abs(fd).max())
-    closing = (r.reshape(n, 3)[:, 0] - rho * (W @ r + q).reshape(n, 3)[:, 0]) > 0
+    closing = (r.reshape(n, 3)[:, 0] - rho[:, 0] * (W @ r + q).reshape(n, 3)[:, 0]) > 0
     stick = closing & (A[:, 1, 1] == 0)
     assert closing.sum() > 5 and (~closing).sum() > 5 and stick.sum() > 0 and (closing & ~stick).sum() > 5
 

@@ -4,8 +4,8 @@ finish: many strongly coupled contacts, more rows than the degrees of freedom th
 singular or nearly so), where a sweep's progress falls with W's conditioning and Newton's does not.
 
 Problem and stopping rule: those of tissue.contact.frictional_contact (u = W r + q, Coulomb's law
-per contact, the natural-map residual). Per contact, with ρ = 3 / tr W_ii and
-r̃_n = r_n - ρ u_n, r̃_t = r_t - ρ u_t,
+per contact, the natural-map residual). Per contact, with ρ_t = 3 / tr W_ii, ρ_n = NORMAL_RHO ρ_t
+(below SINGLE_ROWS rows; else ρ_t) and r̃_n = r_n - ρ_n u_n, r̃_t = r_t - ρ_t u_t,
 
     Φ_n = r_n - max(0, r̃_n),     Φ_t = r_t - P_{disk(μ max(0, r̃_n))}(r̃_t),
 
@@ -81,23 +81,34 @@ REUSE_ITERATIONS = 12    # ... within this many iterations (else a fresh LU),
 JACOBI_ITERATIONS = 100  # ... and where no LU serves: GMRES preconditioned by J's 3×3 diagonal blocks, within
                          # this many iterations, before a fresh LU
 FORCING = (1e-3, 0.1)    # ... to a relative residual 0.9 (|Φ_k| / |Φ_k-1|)² clipped to this (Eisenstat-Walker)
+NORMAL_RHO = 10.0        # ρ_n / ρ_t below SINGLE_ROWS rows (1 from there on): any ρ_n > 0 has the same solutions; a
+                         # larger one weighs the normal velocities more in Φ and its merit. On the four of
+                         # liver_press's Newton fallbacks that crawled (10-14 closing contacts, W among them near
+                         # singular) ×10 took 6-18 Newton steps where ×1 took 14-31, from the same Gauss-Seidel
+                         # start; ρ_t × 10 as well did no better there and failed (300 steps) on a singular soft-body
+                         # problem from zero (tests); ρ_t alone × 10 did worse. On the press plate (2,382-3,465 rows)
+                         # ×10 changed more contacts' states between Newton steps, GMRES on the last LU failed more
+                         # often, and its solves took 11-16 % more CPU (the same Newton steps)
 
 
 _I2 = np.eye(2)
 
 
 def _rho(diagonal_blocks: np.ndarray) -> np.ndarray:
-    """ρ per contact: 3 / tr W_ii (the Alart–Curnier augmentation, on W's scale)."""
-    return 3.0 / np.trace(diagonal_blocks, axis1=1, axis2=2)
+    """(ρ_n, ρ_t, ρ_t) per contact (n, 3): ρ_t = 3 / tr W_ii, ρ_n = NORMAL_RHO ρ_t below SINGLE_ROWS
+    rows, else ρ_t (the Alart–Curnier augmentation, on W's scale)."""
+    rho = 3.0 / np.trace(diagonal_blocks, axis1=1, axis2=2)
+    return rho[:, None] * np.array([NORMAL_RHO if 3 * len(rho) < SINGLE_ROWS else 1.0, 1.0, 1.0])
 
 
 def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray, jacobian: bool = True):
-    """Φ (n, 3) at reactions r and velocities u (both (n, 3)), and the 3×3 blocks A, B (n, 3, 3) of
-    its generalised Jacobian dΦ = A dr + B du (du = W dr). At the kinks the one-sided choice
-    is the branch the strict inequality names (a valid element of the generalised Jacobian).
+    """Φ (n, 3) at reactions r and velocities u (both (n, 3)) with the augmentation rho (n, 3: ρ_n,
+    ρ_t, ρ_t; see _rho), and the 3×3 blocks A, B (n, 3, 3) of its generalised Jacobian dΦ = A dr +
+    B du (du = W dr). At the kinks the one-sided choice is the branch the strict inequality names
+    (a valid element of the generalised Jacobian).
     Whole-array operations, no boolean-indexed assignments: the line search calls it a few times
     a Newton step on ~100 contacts, where each numpy call's overhead is most of its cost."""
-    tilde = r - rho[:, None] * u                        # (r̃_n, r̃_t)
+    tilde = r - rho * u                                 # (r̃_n, r̃_t)
     closing = tilde[:, 0] > 0
     pressed = np.maximum(tilde[:, 0], 0.0)
     radius = mu * pressed
@@ -114,18 +125,18 @@ def _alart_curnier(r: np.ndarray, u: np.ndarray, mu: np.ndarray, rho: np.ndarray
         return phi, None, None
     n = len(mu)
     A, B = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
-    # Normal row: Φ_n = ρ u_n when closing, else r_n.
+    # Normal row: Φ_n = ρ_n u_n when closing, else r_n.
     A[:, 0, 0] = ~closing
-    B[:, 0, 0] = np.where(closing, rho, 0.0)
-    # Sticking: Φ_t = ρ u_t. Sliding: Φ_t = r_t - R e, R = μ max(0, r̃_n), e = r̃_t / |r̃_t|:
-    #   dΦ_t = dr_t - e dR - (R / |r̃_t|) (I - e eᵀ) dr̃_t, dR = μ (dr_n - ρ du_n) when closing.
+    B[:, 0, 0] = np.where(closing, rho[:, 0], 0.0)
+    # Sticking: Φ_t = ρ_t u_t. Sliding: Φ_t = r_t - R e, R = μ max(0, r̃_n), e = r̃_t / |r̃_t|:
+    #   dΦ_t = dr_t - e dR - (R / |r̃_t|) (I - e eᵀ) dr̃_t, dR = μ (dr_n - ρ_n du_n) when closing.
     k = np.divide(radius, nt, out=np.zeros(n), where=slide & (nt > 0))
     G = k[:, None, None] * (_I2 - e[:, :, None] * e[:, None, :])     # (R / |r̃_t|)(I - e eᵀ)
     A[:, 1:, 1:] = np.where(slide[:, None, None], _I2 - G, 0.0)
-    B[:, 1:, 1:] = rho[:, None, None] * np.where(slide[:, None, None], G, _I2)
+    B[:, 1:, 1:] = rho[:, 1, None, None] * np.where(slide[:, None, None], G, _I2)
     pushing = (slide & closing)[:, None]
     A[:, 1:, 0] = np.where(pushing, -mu[:, None] * e, 0.0)
-    B[:, 1:, 0] = np.where(pushing, (mu * rho)[:, None] * e, 0.0)
+    B[:, 1:, 0] = np.where(pushing, (mu * rho[:, 0])[:, None] * e, 0.0)
     return phi, A, B
 
 
@@ -346,7 +357,7 @@ def solve(W, W_block, q, mu, diagonal_blocks, r0, tol_abs, max_iterations, gauss
             anchor, inner, ue = r.copy(), 0, u
             phi, A, B = _alart_curnier(r, ue, mu, rho)
         merit = 0.5 * (phi * phi).sum()
-        closing = r[:, 0] - rho * ue[:, 0] > 0
+        closing = r[:, 0] - rho[:, 0] * ue[:, 0] > 0
         # Newton's linear solves need be no more exact than Φ's progress shows the model to be
         # (Eisenstat & Walker 1996, choice 2): loose while states change and Φ falls slowly.
         low, high = FORCING
