@@ -322,6 +322,26 @@ def test_soft_soft_detection_matches_brute_force(backend):
     np.testing.assert_allclose(c.normal[mine][inside], np.tile([0, 0, 1.0], (inside.sum(), 1)), atol=1e-12)
 
 
+def test_soft_detection_replays_by_identity(backend, monkeypatch):
+    """From the third call on, the soft launches' arguments are the very objects of the call before
+    (the grid's cell0 kept, not a new float each call), so their replays skip making a key."""
+    from tissue import launch
+    from tissue.contact.detection import Detector
+    from tissue.mesh import boundary_faces, box
+
+    B = box((0.1, 0.1, 0.05), (5, 5, 2), origin=(-0.05, -0.05, -0.05))
+    A = box((0.06, 0.06, 0.03), (3, 3, 2), origin=(-0.03, -0.03, 0.0005))
+    det, alarm = Detector([boundary_faces(A.tets), boundary_faces(B.tets)]), 3e-3
+    positions = [A.points, B.points]
+    first = det.detect(positions, alarm)
+    det.detect(positions, alarm)
+    keyed = []
+    monkeypatch.setattr(launch, "_key", lambda arg, key=launch._key: keyed.append(arg) or key(arg))
+    again = det.detect(positions, alarm)
+    assert keyed == [] and len(again) == len(first) > 0
+    np.testing.assert_array_equal(again.gap, first.gap)
+
+
 # ----------------------------------------------------------------------------------------------
 # H in JDS
 # ----------------------------------------------------------------------------------------------

@@ -301,6 +301,7 @@ class _Surface:
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
         self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
         self.cell = None                          # base cell size: set at the first detection
+        self.cell0 = None                         # cell + 2 alarm: the launch's cell0 (_run_soft)
         self.gap, self.out = gap, out             # its rows of the Detector's HitBuffer
 
 
@@ -458,11 +459,14 @@ class Detector:
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
         slot = len(self.obstacles) + body.others.index(b)
         gap = body.surface.gap
+        cell0 = other.cell + 2 * body.alarm
+        if cell0 != other.cell0:        # else the same float object as before: the launch replays by identity
+            other.cell0 = cell0
         while True:
             pack = self._pack((body.index, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets,
                                                         other.vf, other.normals, other.start, other.cursor, ids,
                                                         other.grid_i, other.grid_f))     # SOFT_MEMBERS
-            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell + 2 * body.alarm, body.alarm,
+            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell0, body.alarm,
                                   slot, body.dt, copy_state, self.serial)
             needed = int(gap[-1, slot])
             if needed <= ids.shape[0]:

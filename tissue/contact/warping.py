@@ -140,40 +140,48 @@ def _translations_and_gather(k: ti.template(), Qt: ti.template(), q0, Qb: ti.tem
     step's gather (that row length), and `before` each touched node's index among its nodes (-1:
     new): the entries between nodes touched both times are copied from there (the same numbers, in
     cache: the touched nodes change a few at a time), only the others read from the whole Q."""
-    n_active, d, inverse_mass = k.sizes[N_ACTIVE], 3 * k.sizes[N_TOUCHED], k.reals[INVERSE_MASS]
+    n_active, inverse_mass = k.sizes[N_ACTIVE], k.reals[INVERSE_MASS]
     o_count, o_ptr, _, _, o_touched = _jds_offsets(n_active, k.sizes[K_MAX], k.sizes[NNZ])
     ti.loop_config(serialize=serial)
     for i in range(n_active):
         k.ht[i] = _row_translation(k, o_count, o_ptr, i)
-    # One thread: nested loops (a top-level ti.ndrange divides for its two indices at every entry);
-    # else one parallel loop over all the entries.
+    # By 3×3 node blocks: a node's index, its `before` and its row of C0 read once a block, not
+    # once an entry. One thread: nested loops (a top-level ti.ndrange divides for its two indices
+    # at every entry); else one parallel loop over all the blocks.
+    nt, blocks = k.sizes[N_TOUCHED], ld // 3
     if ti.static(serial):
         ti.loop_config(serialize=True)
-        for a in range(ld * gather):
-            for m in range(ld):
-                Qt[q0 + a * ld + m] = _gathered_entry(k, Qb, a, m, d, o_touched, inverse_mass)
+        for a in range(blocks * gather):
+            for m in range(blocks):
+                _gather_block(k, Qt, q0, Qb, a, m, ld, nt, o_touched, inverse_mass)
     else:
-        for a, m in ti.ndrange(ld * gather, ld):
-            Qt[q0 + a * ld + m] = _gathered_entry(k, Qb, a, m, d, o_touched, inverse_mass)
+        for a, m in ti.ndrange(blocks * gather, blocks):
+            _gather_block(k, Qt, q0, Qb, a, m, ld, nt, o_touched, inverse_mass)
 
 
 @ti.func
-def _gathered_entry(k: ti.template(), Qb: ti.template(), a, m, d, o_touched, inverse_mass):
-    """Entry (a, m) of the gathered Q (see _translations_and_gather): last step's gather where both
-    nodes were touched then, else read from the whole Q; the translation's block past d."""
+def _gather_block(k: ti.template(), Qt: ti.template(), q0, Qb: ti.template(), a, m, ld, nt, o_touched,
+                  inverse_mass):
+    """Node block (a, m) of the gathered Q (see _translations_and_gather) into Qt: last step's
+    gather where both nodes were touched then, else read from the whole Q; the translation's block
+    past the nt touched nodes."""
     qb0, ldb = k.sizes[Q_BEFORE], k.sizes[LD_BEFORE]
-    value = 0.0
-    if a < d and m < d:
+    at = q0 + 3 * a * ld + 3 * m
+    if a < nt and m < nt:
         pa, pm = -1, -1
         if ldb > 0:
-            pa, pm = k.before[a // 3], k.before[m // 3]
+            pa, pm = k.before[a], k.before[m]
         if pa >= 0 and pm >= 0:
-            value = Qb[qb0 + (3 * pa + a % 3) * ldb + 3 * pm + m % 3]
+            kept = qb0 + 3 * pa * ldb + 3 * pm
+            for p, q in ti.static(ti.ndrange(3, 3)):
+                Qt[at + p * ld + q] = Qb[kept + p * ldb + q]
         else:
-            value = k.C0[3 * k.rows[a // 3] + a % 3, 3 * k.jds[o_touched + m // 3] + m % 3]
-    elif a == m:
-        value = inverse_mass
-    return value
+            row, col = 3 * k.rows[a], 3 * k.jds[o_touched + m]
+            for p, q in ti.static(ti.ndrange(3, 3)):
+                Qt[at + p * ld + q] = k.C0[row + p, col + q]
+    else:
+        for p, q in ti.static(ti.ndrange(3, 3)):
+            Qt[at + p * ld + q] = inverse_mass if a == m and p == q else 0.0
 
 
 # One launch each (parallel loops; on one thread for small bodies on the CPU): _rotate for the
