@@ -203,19 +203,13 @@ def _joined(parts: list) -> np.ndarray:
 
 def _displacements(free, prev):
     """moved(body, nodes): the step's displacement free - prev of the nodes `nodes` (any shape) of
-    the bodies `body` (broadcast along nodes' first axis), each body's read where its points
-    are (subtracted at those nodes alone: the same numbers as over whole bodies)."""
-    if len(free) == 1:
-        f, p = np.asarray(free[0], dtype=np.float64), np.asarray(prev[0], dtype=np.float64)
-        return lambda body, nodes: f[nodes] - p[nodes]
+    the bodies `body` (broadcast along nodes' first axis). The whole bodies' displacements are
+    subtracted once and gathered once per call (a few hundred nodes: fewer numpy calls than
+    gathering free and prev apart; the same numbers)."""
     offset = offsets([len(f) for f in free])
-    f = np.concatenate([np.asarray(f, dtype=np.float64) for f in free] or [np.zeros((0, 3))])
-    p = np.concatenate([np.asarray(p, dtype=np.float64) for p in prev] or [np.zeros((0, 3))])
-
-    def moved(body, nodes):
-        index = offset[body].reshape((-1,) + (1,) * (nodes.ndim - 1)) + nodes
-        return f[index] - p[index]
-    return moved
+    moved = _joined([np.asarray(f, dtype=np.float64) - np.asarray(p, dtype=np.float64) for f, p in zip(free, prev)]
+                    or [np.zeros((0, 3))])
+    return lambda body, nodes: moved[offset[body].reshape((-1,) + (1,) * (nodes.ndim - 1)) + nodes]
 
 
 class JaggedDiagonal:
