@@ -147,7 +147,7 @@ def jacobian(contacts: Contacts, attachments=(), frictionless=None) -> Constrain
         block.append(soft.repeat(3))
         body.append(contacts.other[soft].repeat(3))
         node.append(contacts.triangle[soft].ravel())
-        value.append(-contacts.weights[soft].reshape(-1)[:, None, None] * directions[soft].repeat(3, axis=0))
+        value.append((-contacts.weights[soft][:, :, None, None] * directions[soft, None]).reshape(-1, 3, 3))
     eye = np.eye(3)[None] if attachments else None
     for a, att in enumerate(attachments):
         t = k + a
@@ -269,10 +269,8 @@ class JaggedDiagonal:
         starts = offsets(count)
         rank = np.empty(len(t), dtype=np.int64)
         rank[by_row] = np.arange(len(t)) - starts[t[by_row]]
-        k_max = int(count.max(initial=0))
-        # lengths[k]: the block rows with more than k blocks
-        lengths = len(count) - np.bincount(count, minlength=k_max + 1)[:k_max].cumsum()
-        jd_ptr = offsets(lengths)
+        # Jagged diagonal k holds the entries of rank k, one per block row with more than k blocks
+        jd_ptr = offsets(np.bincount(rank))
         index = jd_ptr[rank] + position[t]
         self.perm, self.count = order[:self.n_active].astype(np.int32), count[order[:self.n_active]].astype(np.int32)
         self.jd_ptr = jd_ptr.astype(np.int32)
