@@ -203,12 +203,15 @@ def _joined(parts: list) -> np.ndarray:
 
 def _displacements(free, prev):
     """moved(body, nodes): the step's displacement free - prev of the nodes `nodes` (any shape) of
-    the bodies `body` (broadcast along nodes' first axis). The whole bodies' displacements are
-    subtracted once and gathered once per call (a few hundred nodes: fewer numpy calls than
-    gathering free and prev apart; the same numbers)."""
+    the bodies `body` (broadcast along nodes' first axis). One body: subtracted at those nodes
+    alone. Several: the whole bodies' displacements subtracted once and gathered once per call (a
+    few hundred nodes: fewer numpy calls than gathering free and prev apart); the same numbers."""
+    if len(free) == 1:
+        f, p = np.asarray(free[0], dtype=np.float64), np.asarray(prev[0], dtype=np.float64)
+        return lambda body, nodes: f[nodes] - p[nodes]
     offset = offsets([len(f) for f in free])
-    moved = _joined([np.asarray(f, dtype=np.float64) - np.asarray(p, dtype=np.float64) for f, p in zip(free, prev)]
-                    or [np.zeros((0, 3))])
+    moved = np.concatenate([np.asarray(f, dtype=np.float64) - np.asarray(p, dtype=np.float64)
+                            for f, p in zip(free, prev)] or [np.zeros((0, 3))])
     return lambda body, nodes: moved[offset[body].reshape((-1,) + (1,) * (nodes.ndim - 1)) + nodes]
 
 
