@@ -595,6 +595,9 @@ def main(argv=None) -> int:
     parser.add_argument("--press-profile", action="store_true", help="liver_press's step taken apart only")
     parser.add_argument("--press-sampled", action="store_true",
                         help="liver_press's pressed steps' CPU by part, sampled on CPU time only")
+    parser.add_argument("--out", help="the results' name under bench/results (default: contact, contact-quick, "
+                        "contact-floor, contact-press or contact-press-sampled, by mode; a name of your own keeps "
+                        "the committed ones)")
     args = parser.parse_args(argv)
     from tissue import backend
 
@@ -606,20 +609,20 @@ def main(argv=None) -> int:
         for name, control in (("energy control (default)", None), ("no step control", "none")):
             out[name] = step_profile(floor_scene("warped", control))
             print_step_profile(out[name], f"liver_floor, warped, {name}")
-        write_results("contact-floor", out)
+        write_results(args.out or "contact-floor", out)
         return 0
     if args.press_sampled:
         out["liver_press"] = sampled = cpu_sampled()
         print(f"liver_press: {sampled['cpu_ms_per_step']:.2f} CPU ms a step (mean), {sampled['samples']} samples")
         for part, v in sampled["parts"].items():
             print(f"  {v['kernels_ms'] + v['host_ms']:6.3f} ms: kernels {v['kernels_ms']:6.3f}, host {v['host_ms']:6.3f}  {part}")
-        write_results("contact-press-sampled", out)
+        write_results(args.out or "contact-press-sampled", out)
         return 0
     if args.press_profile:
         # both passes within the scene's 80 steps (3.2 s), pressed from the start (195-380 rows)
         out["liver_press"] = step_profile(press("warped"), steps=37, settle=5)
         print_step_profile(out["liver_press"], "liver_press, warped")
-        write_results("contact-press", out)
+        write_results(args.out or "contact-press", out)
         return 0
 
     press_results = {"warped": run_press("warped", args.steps, check_every=0 if args.quick else 8)}
@@ -717,7 +720,7 @@ def main(argv=None) -> int:
     for run in (*press_results.values(), wide, dense, *(out.get("liver_floor", {}).values())):
         if isinstance(run, dict):
             run.pop("per_step", None)
-    write_results("contact-quick" if args.quick else "contact", out)
+    write_results(args.out or ("contact-quick" if args.quick else "contact"), out)
     return 0
 
 
