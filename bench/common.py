@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import subprocess
+import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -85,6 +86,18 @@ def write_results(name: str, data: dict) -> Path:
     path.write_text(json.dumps(data, indent=2))
     print(f"# wrote {path.relative_to(ROOT)}")
     return path
+
+
+def run_child(checkout: Path, child: str, args=(), env=None, required: bool = True) -> dict:
+    """Run the script `child` (python -c) with `checkout` on PYTHONPATH and in its folder, `args` as
+    its argv and `env` added to the environment; return the JSON of its line "RESULT {...}" ({} where
+    none and not `required`), or raise with the end of its stderr where it failed."""
+    done = subprocess.run([sys.executable, "-c", child, *map(str, args)], cwd=checkout, capture_output=True,
+                          text=True, env={**os.environ, **(env or {}), "PYTHONPATH": str(checkout)})
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if done.returncode != 0 or (required and not lines):
+        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
+    return json.loads(lines[0][len("RESULT "):]) if lines else {}
 
 
 def alternate_with_commit(other: str, rounds: int, measure, describe, prefix: str) -> tuple[str, dict]:

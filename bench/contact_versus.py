@@ -25,15 +25,11 @@ OUT.json with --out: a comparison with another commit beside it).
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import alternate_with_commit, machine, print_machine, write_results
+from bench.common import alternate_with_commit, machine, print_machine, run_child, write_results
 
 # Runs inside a checkout, with this checkout's bench/contact.py (its path in TISSUE_BENCH_CONTACT:
 # the same scenes, counters and medians for both commits) over the checkout's own tissue.
@@ -97,13 +93,8 @@ COLUMNS = ("free_motion", "detection", "constraints", "compliance", "lcp", "corr
 
 
 def measure(checkout: Path, scenes=SCENES) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout), TISSUE_BENCH_CONTACT=str(Path(__file__).resolve().with_name("contact.py")),
-               TISSUE_BENCH_SCENES=" ".join(scenes))
-    done = subprocess.run([sys.executable, "-c", CHILD], cwd=checkout, env=env, capture_output=True, text=True)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or not lines:
-        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
-    return json.loads(lines[0][len("RESULT "):])
+    return run_child(checkout, CHILD, env={"TISSUE_BENCH_CONTACT": str(Path(__file__).resolve().with_name("contact.py")),
+                                           "TISSUE_BENCH_SCENES": " ".join(scenes)})
 
 
 def summary(runs: list[dict], scenes=SCENES) -> dict:

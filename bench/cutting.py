@@ -36,10 +36,7 @@ blocks following; median ms over repetitions, state allocations and kernels comp
 """
 
 import argparse
-import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -52,7 +49,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import scipy.linalg
 
-from bench.common import alternate_with_commit, machine, print_machine, write_results  # noqa: E402
+from bench.common import alternate_with_commit, machine, print_machine, run_child, write_results  # noqa: E402
 from scenes.liver_cut import LiverCut  # noqa: E402
 from tissue import backend  # noqa: E402
 from tissue.body import held_nodes  # noqa: E402
@@ -315,13 +312,7 @@ print("RESULT " + json.dumps({k: r[k] for k in ("tets", "cut_steps", "median_ms"
 
 
 def measure(checkout: Path, target: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout))
-    done = subprocess.run([sys.executable, "-c", CHILD, str(target)], cwd=checkout, env=env, capture_output=True,
-                          text=True)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or not lines:
-        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
-    return json.loads(lines[0][len("RESULT "):])
+    return run_child(checkout, CHILD, (target,))
 
 
 def versus(other: str, rounds: int, target: int = SIZES[-1]) -> dict:

@@ -17,16 +17,12 @@ and the CG iterations; this / other. Writes bench/results/OUT.json.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import ROOT, alternate_with_commit, machine, print_machine, write_results
+from bench.common import ROOT, alternate_with_commit, machine, print_machine, run_child, write_results
 
 # The solver's arrays a step reads from its state (both checkouts lay them out alike).
 STATE = ("x", "v", "dv", "scalars")
@@ -75,14 +71,9 @@ print("RESULT " + json.dumps(result))
 
 
 def run(checkout: Path, state_file: Path, settle: int = 0, launches: int = 0) -> dict:
-    env = {"PYTHONPATH": str(checkout), "TISSUE_STATE": " ".join(STATE), "TISSUE_STATE_FILE": str(state_file),
-           "TISSUE_SETTLE": str(settle), "TISSUE_LAUNCHES": str(launches)}
-    done = subprocess.run([sys.executable, "-c", CHILD], cwd=checkout, env={**os.environ, **env},
-                          capture_output=True, text=True)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or (launches and not lines):
-        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
-    return json.loads(lines[0][len("RESULT "):]) if lines else {}
+    env = {"TISSUE_STATE": " ".join(STATE), "TISSUE_STATE_FILE": str(state_file), "TISSUE_SETTLE": str(settle),
+           "TISSUE_LAUNCHES": str(launches)}
+    return run_child(checkout, CHILD, env=env, required=bool(launches))
 
 
 def main(argv=None) -> None:

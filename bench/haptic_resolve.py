@@ -24,8 +24,6 @@ it has.
 import argparse
 import json
 import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -33,7 +31,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from bench.common import alternate_with_commit, machine, print_machine, write_results  # noqa: E402
+from bench.common import alternate_with_commit, machine, print_machine, run_child, write_results  # noqa: E402
 
 TICKS = 40                                      # per problem: a 40 ms step at 1 kHz
 DRIFT = np.array([5e-4, -2e-4, 3e-4])           # m, the device's motion over a problem's ticks
@@ -89,14 +87,10 @@ def problems(path: Path) -> int:
 
 
 def measure(checkout: Path, path: Path, sweeps: int = 30, converged: bool = False) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout), TISSUE_BENCH_PROBLEMS=str(path),
-               TISSUE_BENCH_TICKS=str(TICKS), TISSUE_BENCH_DRIFT=json.dumps(DRIFT.tolist()),
-               TISSUE_BENCH_SWEEPS=str(sweeps), TISSUE_BENCH_CONVERGED="1" if converged else "")
-    done = subprocess.run([sys.executable, "-c", CHILD], cwd=checkout, env=env, capture_output=True, text=True)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or not lines:
-        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
-    run = json.loads(lines[0][len("RESULT "):])
+    env = {"TISSUE_BENCH_PROBLEMS": str(path), "TISSUE_BENCH_TICKS": str(TICKS),
+           "TISSUE_BENCH_DRIFT": json.dumps(DRIFT.tolist()), "TISSUE_BENCH_SWEEPS": str(sweeps),
+           "TISSUE_BENCH_CONVERGED": "1" if converged else ""}
+    run = run_child(checkout, CHILD, env=env)
     run["load_1min"] = os.getloadavg()[0]
     return run
 

@@ -29,16 +29,13 @@ Writes bench/results/step_control_versus.json (or NAME.json).
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import alternate_with_commit, start_on_cpu, write_results
+from bench.common import alternate_with_commit, run_child, start_on_cpu, write_results
 
 SCENES = ("beam", "liver", "liver_press")
 SETTINGS = {"none": ["solver.step_control=none"], "energy": ["solver.step_control=energy", "solver.energy_budget=false"]}
@@ -102,12 +99,7 @@ print("RESULT " + json.dumps(dict(steps=steps, cpu_ms_per_step=cpu_ms, rejection
 
 
 def run_in(checkout: Path, scene: str) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout))
-    done = subprocess.run([sys.executable, "-c", CHILD, scene], cwd=checkout, env=env, capture_output=True, text=True)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or not lines:
-        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
-    return json.loads(lines[0][len("RESULT "):])
+    return run_child(checkout, CHILD, (scene,))
 
 
 def versus(other: str, scenes: list[str], rounds: int, info: dict, out: str) -> None:

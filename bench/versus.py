@@ -16,15 +16,11 @@ left in Taichi's offline cache). Writes bench/results/versus.json.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import alternate_with_commit, machine, print_machine, write_results
+from bench.common import alternate_with_commit, machine, print_machine, run_child, write_results
 
 # Runs inside a checkout: the API used here is common to the commits compared.
 CHILD = r"""
@@ -51,14 +47,7 @@ print("RESULT " + json.dumps(rows))
 
 def measure(checkout: Path, quick: bool, preconditioner: str = "none", rotation: str = "large",
             max_tets: int = 300_000) -> list[dict]:
-    env = dict(os.environ, PYTHONPATH=str(checkout))
-    done = subprocess.run([sys.executable, "-c", CHILD, "quick" if quick else "full", preconditioner, rotation,
-                           str(max_tets)],
-                          cwd=checkout, env=env, capture_output=True, text=True)
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or not lines:
-        raise RuntimeError(f"{checkout}: {done.stderr.strip()[-2000:]}")
-    return json.loads(lines[0][len("RESULT "):])
+    return run_child(checkout, CHILD, ("quick" if quick else "full", preconditioner, rotation, max_tets))
 
 
 def main(argv=None) -> None:
