@@ -52,14 +52,6 @@ class Contacts:
             (0, i), (0, i), ((0, 3), i), ((0, 3), f), (0, i), (0, bool), ((0, 3), i), ((0, 3), f),
             ((0, 3), f), (0, f), ((0, 3), f), ((0, 3), f))))
 
-    @staticmethod
-    def concatenate(parts: list["Contacts"]) -> "Contacts":
-        parts = [p for p in parts if len(p)]
-        if not parts:
-            return Contacts.empty()
-        c = Contacts(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Contacts)))
-        return c.take(np.lexsort((c.other, c.soft, c.sample, c.body)))
-
     def take(self, index) -> "Contacts":
         return Contacts(*(getattr(self, f.name)[index] for f in fields(Contacts)))
 

@@ -450,13 +450,13 @@ class ContactStage:
         """The rows with their blocks on the jaws they touch: minus the row directions (a jaw's
         point moving along d closes the gap), at the jaw's one node (a frictionless contact's
         tangent rows stay empty, as on the soft side)."""
-        jaw = np.where(contacts.soft, -1, contacts.other - self._first_jaw)
-        on = (jaw >= 0).nonzero()[0]
+        on = self.on_jaws(contacts).nonzero()[0]
         if not len(on):
             return rows
+        jaw = contacts.other[on] - self._first_jaw
         value = rows.frames[on] * np.where(frictionless[on, None, None] & (np.arange(3) > 0)[:, None], 0.0, 1.0)
         return replace(rows, block=np.r_[rows.block, on].astype(np.int32),
-                       body=np.r_[rows.body, len(self.bodies) + jaw[on]].astype(np.int32),
+                       body=np.r_[rows.body, len(self.bodies) + jaw].astype(np.int32),
                        node=np.r_[rows.node, np.zeros(len(on))].astype(np.int32),
                        value=np.concatenate([rows.value, -value]))
 
