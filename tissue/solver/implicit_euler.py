@@ -314,13 +314,16 @@ class ImplicitEuler:
         """A₀, the step matrix of the rest shape at this dt and damping (scipy CSR, every dof),
         made again only after the model or these changed: the multigrid's set-up and the contact
         compliance's A₀⁻¹ both start from it."""
-        model = self.model
-        key = (model.edits, model.material, self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
+        key = self.rest_key()
         made_for, matrix = self._rest_matrix
         if made_for != key:
-            matrix = rest_matrix(model.mesh(), model.material, *key[2:])
+            matrix = rest_matrix(self.model.mesh(), self.model.material, *key[2:])
             self._rest_matrix = (key, matrix)
         return matrix
+
+    def rest_key(self) -> tuple:
+        """What A₀ is a function of: the model's edits and material, dt and the damping."""
+        return (self.model.edits, self.model.material, self.dt, self.rayleigh_mass, self.rayleigh_stiffness)
 
     # ---- coefficients of A = mass_factor M + stiffness_factor Σ R Kₑ Rᵀ ------------------------
 

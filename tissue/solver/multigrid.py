@@ -164,8 +164,8 @@ class Multigrid:
         setting's are kept until the next rebuild (at most TUNINGS of them): the energy check's
         halved steps (tissue.solver.step_control) go to dt/2 and back, and making A₀ and the
         coarse inverse again each time was most of a rejected step's cost."""
-        solver, model = self.solver, self.solver.model
-        key = (model.edits, model.material, solver.dt, solver.rayleigh_mass, solver.rayleigh_stiffness)
+        solver = self.solver
+        key = solver.rest_key()
         if key not in self._tunings:
             if len(self._tunings) == TUNINGS:
                 del self._tunings[next(iter(self._tunings))]        # the oldest
@@ -296,16 +296,22 @@ def _smooth(k: ti.template(), o: ti.template(), r: ti.template(), z: ti.template
     """z += S res (Chebyshev in D⁻¹A): from zero (known at compile or run time), res = r and z = S r;
     else from res = r - A z, which one thread takes here, in the same pass over the nodes (after
     `multiply(z)`: a node's row reads only its own z), and the parallel rows layout, whose rows
-    read the neighbours' z, in a pass of its own before (_residual)."""
+    read the neighbours' z, in a pass of its own before (_residual). res and d are kept only for the
+    Chebyshev steps that follow (block-Jacobi, of degree 1, has none)."""
     mass_factor, stiffness_factor = factors(k)
+    chebyshev = k.coefficients.shape[0] > 1
     for v in range(k.counts[0]):
         if _running(k):
-            if from_zero:
-                k.res[v] = r[v]
-            elif ti.static(o.serial):
-                k.res[v] = r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor)
-            d = (k.block_inverse[v] @ k.res[v]) / k.coefficients[0]
-            k.d[v] = d
+            res = r[v]
+            if not from_zero:
+                if ti.static(o.serial):
+                    res = r[v] - operator_row(k, o, v, z, mass_factor, stiffness_factor)
+                else:
+                    res = k.res[v]
+            d = (k.block_inverse[v] @ res) / k.coefficients[0]
+            if chebyshev:
+                k.res[v] = res
+                k.d[v] = d
             if from_zero:
                 z[v] = d
             else:
