@@ -124,13 +124,13 @@ class Reference:
         f0, psi0 = nl.corotational_element(self.nl, x0[tets], "polar")
         _, psi1 = nl.corotational_element(self.nl, x1[tets], "polar")
         R0 = nl.polar_rotations(nl.deformation_gradients(self.nl, x0[tets]))
-        R1 = nl.polar_rotations(nl.deformation_gradients(self.nl, x1[tets]))
+        F1 = nl.deformation_gradients(self.nl, x1[tets])
+        R1 = nl.polar_rotations(F1)
         dxe = (x1 - x0)[tets]
         local = np.einsum("mji,maj->mai", R0, dxe).reshape(len(tets), 12)
         departure = psi1 - (psi0 - np.einsum("mai,mai->m", f0, dxe)
                             + 0.5 * np.einsum("mi,mij,mj->m", local, self.nl.Ke, local))
         turn = np.degrees(np.arccos(np.clip((np.einsum("mij,mij->m", R1, R0) - 1) / 2, -1, 1)))
-        F1 = nl.deformation_gradients(self.nl, x1[tets])
         stretches = np.linalg.svd(F1, compute_uv=False)
         return {"scipy": self.energy(x1, v1) - self.energy(x0, v0),
                 "mass": -0.5 * float(dv @ (self.mass * dv)),

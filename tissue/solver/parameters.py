@@ -48,7 +48,6 @@ class CGSettings:
             raise TissueError(f"warm_start: must be True or False, got {self.warm_start!r}")
 
 
-
 @dataclass(frozen=True)
 class StepParameters:
     """The parameters of a step, read by the kernels at every launch: changing them on a live

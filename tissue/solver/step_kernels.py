@@ -78,7 +78,6 @@ def _one_entry():
 # ---- kernels: a step is begin, CG iterations, end, over the launch's argpack `k` and scheme `o` ----
 
 
-
 @ti.func
 def _preconditioned(k: ti.template(), o: ti.template(), v, r):
     """z = P⁻¹ r node by node; multigrid couples nodes, so it runs after (_precondition_coupled)."""
@@ -86,7 +85,6 @@ def _preconditioned(k: ti.template(), o: ti.template(), v, r):
     if ti.static(o.preconditioner == "jacobi"):
         z = k.block_inverse[v] @ r
     return z
-
 
 
 @ti.func
