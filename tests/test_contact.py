@@ -449,6 +449,68 @@ def test_jds_of_one_block_per_row_equals_the_sorted_one(backend):
             np.testing.assert_array_equal(a, e, err_msg=name)
 
 
+def _random_contacts(rng, k, sizes, n_obstacles=2):
+    """k contacts on bodies of `sizes` nodes: vertices, edge midpoints and centroids (some with a
+    zero weight), a third of them against another body's triangle (some at a zero weight), the
+    rest against obstacles (half moving); a third of the normals along a world axis, unnormalised
+    (the frames' ties and signed zeros)."""
+    from tissue.contact.contacts import Contacts
+
+    nb = len(sizes)
+    body = rng.integers(0, nb, k).astype(np.int32)
+    kind = rng.integers(0, 3, k)
+    own = np.array([[1.0, 0.0, 0.0], [0.5, 0.5, 0.0], [1 / 3, 1 / 3, 1 / 3]])[kind]
+    nodes = np.stack([rng.choice(sizes[b], 3, replace=False) for b in body]).astype(np.int32)
+    nodes[kind == 0, 1:] = nodes[kind == 0, :1]
+    soft = (rng.random(k) < 0.35) if nb > 1 else np.zeros(k, bool)
+    other = np.where(soft, (body + rng.integers(1, max(nb, 2), k)) % nb, rng.integers(0, n_obstacles, k)).astype(np.int32)
+    triangle, weights = np.full((k, 3), -1, np.int32), np.zeros((k, 3))
+    for i in soft.nonzero()[0]:
+        triangle[i], weights[i] = rng.choice(sizes[other[i]], 3, replace=False), rng.dirichlet(np.ones(3))
+        weights[i, 2] *= rng.random() < 0.8
+    normal = rng.standard_normal((k, 3))
+    axis = rng.random(k) < 0.3
+    normal[axis] = 2.0 * np.eye(3)[rng.integers(0, 3, axis.sum())] * rng.choice([-1.0, 1.0], (axis.sum(), 1))
+    return Contacts(body=body, sample=np.arange(k, dtype=np.int32), nodes=nodes, own_weights=own, other=other,
+                    soft=soft, triangle=triangle, weights=weights, normal=normal, gap=rng.normal(0, 1e-3, k),
+                    closest=np.zeros((k, 3)), other_motion=rng.normal(0, 1e-3, (k, 3)) * (rng.random((k, 1)) < 0.5))
+
+
+def test_rows_written_by_the_launch_equal_the_numpy_builders(backend):
+    """tissue.contact.row_writer's launch (the stage's rows without attachments or jaws) and the
+    numpy builders (jacobian, with_free_values, JaggedDiagonal: the rows with attachments or jaws)
+    give the same arrays, bit for bit, on random contacts of one to three bodies, soft–soft and
+    soft–rigid, frictionless or not, numbers of contacts that grow past the buffers' first room
+    and shrink; and each JDS is H (body_matrix)."""
+    from tissue.contact.constraints import JaggedDiagonal, build_rows, offsets
+    from tissue.contact.row_writer import RowWriter
+
+    writer, rng = RowWriter(), np.random.default_rng(7)
+    for trial, k in enumerate((1, 40, 300, 2500, 7, 150, 90, 200)):
+        sizes = [int(s) for s in rng.integers(4, 80, 1 + trial % 3)]
+        offset = offsets(sizes)
+        states = rng.standard_normal((offset[-1], 6))
+        free = [states[a:b, :3] for a, b in zip(offset[:-1], offset[1:])]
+        prev = [states[a:b, 3:] for a, b in zip(offset[:-1], offset[1:])]
+        contacts = _random_contacts(rng, k, sizes)
+        frictionless = rng.random(k) < (0.3 if trial % 2 else 0.0)
+        expected = build_rows(contacts, free, prev, frictionless=frictionless)
+        rows, jds = writer.write(contacts, frictionless, states, offset.astype(np.int32))
+        assert (rows.n_rows, rows.n_contacts) == (expected.n_rows, expected.n_contacts)
+        for name in ("block", "body", "node", "value", "q", "frames", "directions"):
+            a, e = getattr(rows, name), getattr(expected, name)
+            assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, name)
+        assert list(jds) == np.bincount(expected.body, minlength=len(sizes)).nonzero()[0].tolist()
+        for b, written in jds.items():
+            built = JaggedDiagonal(expected, b)
+            assert (written.n_active, written.nnz) == (built.n_active, built.nnz)
+            for name in ("packed", "value", "row", "perm", "count", "jd_ptr", "node", "local", "touched"):
+                a, e = getattr(written, name), getattr(built, name)
+                assert a.dtype == e.dtype and a.tobytes() == e.tobytes(), (trial, b, name)
+            np.testing.assert_array_equal(written.to_dense(rows.n_rows, sizes[b]),
+                                          expected.body_matrix(b, sizes[b]).toarray())
+
+
 # ----------------------------------------------------------------------------------------------
 # compliance: W and the correction against a direct computation
 # ----------------------------------------------------------------------------------------------
@@ -1118,7 +1180,7 @@ def test_kept_rows_reuse_their_gathered_compliance(cantilever):
 
 def test_rows_of_contacts_at_rest_are_kept_and_rebuilt_when_they_change(damped_block):
     """A block settling on a plane: once its contacts stop changing, the stage keeps last step's
-    Jacobian, μ and JDS and builds only δ_free (ContactStage._jacobian). Every step's rows and
+    Jacobian, μ and JDS and builds only δ_free (ContactStage._rows). Every step's rows and
     JDS equal those built from scratch on the step's contacts, bit for bit; they are kept at rest
     (measured: 56 of 60 steps) and built anew when the contacts change (the block, tilted 5 % and
     1 mm up, settles: steps 1 and 2) or the friction given does (the plane's μ set to 0 at step

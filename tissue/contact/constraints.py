@@ -259,6 +259,21 @@ class JaggedDiagonal:
         self.local = index[self.node]
         self.packed = np.concatenate([self.perm, self.count, self.jd_ptr, self.node, self.local, self.touched])
 
+    @classmethod
+    def from_packed(cls, packed: np.ndarray, value: np.ndarray, row: np.ndarray, n_active: int,
+                    n_diagonals: int) -> "JaggedDiagonal":
+        """The JDS whose `packed`, `value` and `row` are written already (tissue.contact.row_writer):
+        its other arrays as views of `packed`."""
+        jds = cls.__new__(cls)
+        jds.packed, jds.value, jds.row = packed, value, row
+        jds.n_active, jds.nnz = n_active, len(row)
+        o_node = 2 * n_active + n_diagonals + 1
+        o_local = o_node + jds.nnz
+        jds.perm, jds.count, jds.jd_ptr = packed[:n_active], packed[n_active:2 * n_active], packed[2 * n_active:o_node]
+        jds.node, jds.local, jds.touched = packed[o_node:o_local], packed[o_local:o_local + jds.nnz], \
+            packed[o_local + jds.nnz:]
+        return jds
+
     def _sort(self, rows: ConstraintRows, t: np.ndarray, sel: np.ndarray, real) -> None:
         """perm, count, jd_ptr and the entries (node, value, row) of the block rows `t` of the
         body's entries `sel`, sorted by their number of blocks."""

@@ -47,6 +47,7 @@ from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
 from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
                        within_box)
+from .constraints import offsets
 from .hits import HitBuffer
 from .storage import Storage
 
@@ -365,7 +366,9 @@ class Detector:
         self._fields = {}
         self._packs = {}                          # per body pair, the launch's argpack (see _pack)
         self._bodies = None
-        self.state, self._no_state = None, np.zeros((1, 6))
+        # Per body its (n, 6) rows of `states` (every body's, body b's from state_offset[b]: one
+        # array for tissue.contact.row_writer's launch)
+        self.state, self.states, self.state_offset, self._no_state = None, None, None, np.zeros((1, 6))
         self.storage = Storage()                  # per body, the ids of its triangle grid's cells
         self.serial = _serial(self.samples)
 
@@ -416,7 +419,9 @@ class Detector:
             self._packed = tuple(poses)
         sizes = [f.shape[0] for f in fields_]
         if velocities is not None and (self.state is None or [len(s) for s in self.state] != sizes):
-            self.state = [np.empty((n, 6), np.float64) for n in sizes]
+            self.state_offset = offsets(sizes).astype(np.int32)
+            self.states = np.empty((self.state_offset[-1], 6), np.float64)
+            self.state = [self.states[a:b] for a, b in zip(self.state_offset[:-1], self.state_offset[1:])]
         for a, x in enumerate(fields_):
             v = None if velocities is None else velocities[a]
             body = _BodyDetection(a, x, v, self._no_state if v is None else self.state[a], self._bodies[a],

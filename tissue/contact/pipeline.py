@@ -54,6 +54,7 @@ from .detection import Detector
 from .delassus import FactoredDelassus
 from .frictional_contact import ContactInfo, FrictionalContactSolver, dense_buffer
 from .obstacles import RigidObstacle
+from .row_writer import RowWriter
 from .storage import Storage
 
 # Gauss-Seidel on the contacts in play (FrictionalContactSolver's `reduce`; method 'gauss_seidel'
@@ -212,7 +213,8 @@ class ContactStage:
         self._forget_warm_start()
         self._given_mu = None                   # _friction's μ of the bodies and obstacles: as given, as arrays
         self._frictionless = (None, None)       # a μ per contact, and where it is 0 (_solve)
-        self._kept = None                       # the last rows' Jacobian (_jacobian)
+        self._kept = None                       # the last rows' Jacobian (_rows)
+        self._writer = RowWriter()              # ... written by one launch (without attachments or jaws)
         self._factors_before = {}               # per body, its last step's factor of W (_factored)
         self.last = ContactResult(Contacts.empty(), dt=self.dt)
         real = backend.current().real
@@ -369,10 +371,7 @@ class ContactStage:
 
         keys = self._keys(contacts)
         with stats.stage("constraints"):
-            free = [x[:, :3] for x in self.detector.state]     # read by the detection's launches
-            prev = [x[:, 3:] for x in self.detector.state]
-            kept = self._jacobian(contacts, keys)
-            rows = with_free_values(kept.rows, contacts, free, prev, self.attachments, self.time)
+            kept, rows = self._rows(contacts, keys)
             mu, touched, jds = kept.mu, kept.touched, kept.jds
 
         with stats.stage("compliance"):
@@ -429,22 +428,33 @@ class ContactStage:
                 return kept.keys
         return contacts.keys()
 
-    def _jacobian(self, contacts: Contacts, keys: np.ndarray) -> "_KeptRows":
-        """The rows' Jacobian, μ, the bodies the rows touch and their JDS: last step's when the
-        contacts are the same ones at the same places (`_KeptRows.same`: a body at rest), else
-        built anew."""
+    def _rows(self, contacts: Contacts, keys: np.ndarray) -> tuple["_KeptRows", ConstraintRows]:
+        """The step's rows with δ_free, and what is kept of them (_KeptRows: the Jacobian, μ, the
+        bodies the rows touch and their JDS): last step's when the contacts are the same ones at
+        the same places (`_KeptRows.same`: a body at rest), δ_free anew; else built anew, by one
+        launch (tissue.contact.row_writer) or, with attachments or jaws, in numpy."""
         given, attachments = self._given_friction(), tuple(self.attachments)
         kept = self._kept
+        states = self.detector.state                     # read by the detection's launches
         if kept is not None and kept.same(contacts, keys, given, attachments):
-            return kept
+            return kept, with_free_values(kept.rows, contacts, [x[:, :3] for x in states], [x[:, 3:] for x in states],
+                                          self.attachments, self.time)
         mu = self._friction(contacts, given)
-        rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
-        if self.jaws:
-            rows = self._with_jaws(rows, contacts, mu == 0)
-        touched = np.bincount(rows.body, minlength=len(self.compliance)).nonzero()[0].tolist()
-        jds = {b: JaggedDiagonal(rows, b) for b in touched} if self.settings.compliance == "warped" else None
+        warped = self.settings.compliance == "warped"
+        if self.attachments or self.jaws:
+            rows = jacobian(contacts, self.attachments, frictionless=mu == 0)
+            if self.jaws:
+                rows = self._with_jaws(rows, contacts, mu == 0)
+            touched = np.bincount(rows.body, minlength=len(self.compliance)).nonzero()[0].tolist()
+            jds = {b: JaggedDiagonal(rows, b) for b in touched} if warped else None
+            rows = with_free_values(rows, contacts, [x[:, :3] for x in states], [x[:, 3:] for x in states],
+                                    self.attachments, self.time)
+        else:
+            rows, jds = self._writer.write(contacts, mu == 0, self.detector.states, self.detector.state_offset)
+            touched = list(jds)
+            jds = jds if warped else None
         self._kept = _KeptRows(contacts, keys, given, attachments, rows, mu, touched, jds)
-        return self._kept
+        return self._kept, rows
 
     def _with_jaws(self, rows: ConstraintRows, contacts: Contacts, frictionless: np.ndarray) -> ConstraintRows:
         """The rows with their blocks on the jaws they touch: minus the row directions (a jaw's
@@ -592,13 +602,13 @@ class ContactStage:
 @dataclass
 class _KeptRows:
     """The constraint rows' Jacobian of one step's contacts, kept for the next step (see
-    ContactStage._jacobian), and what it was built from."""
+    ContactStage._rows), and what it was built from."""
 
     contacts: Contacts
     keys: np.ndarray
     given_friction: tuple
     attachments: tuple
-    rows: ConstraintRows          # q empty: the step's δ_free is added to it (with_free_values)
+    rows: ConstraintRows          # (their q, δ_free, is the step's: with_free_values writes it anew)
     mu: np.ndarray
     touched: list
     jds: dict | None
