@@ -73,8 +73,8 @@ def offsets(counts) -> np.ndarray:
     return out
 
 
-# _CROSS[a] @ n = n × e_a (e_a the world axis a)
-_CROSS = np.array([[[0, 0, 0], [0, 0, 1], [0, -1, 0]], [[0, 0, -1], [0, 0, 0], [1, 0, 0]],
+# AXIS_CROSS[a] @ n = n × e_a (e_a the world axis a)
+AXIS_CROSS = np.array([[[0, 0, 0], [0, 0, 1], [0, -1, 0]], [[0, 0, -1], [0, 0, 0], [1, 0, 0]],
                    [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]], dtype=np.float64)
 
 
@@ -82,7 +82,7 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """(k, 3, 3): rows n, t1, t2 (right-handed orthonormal), t1 = n × the world axis least aligned
     with n, so it varies smoothly with n. (Written out: np.cross costs more than the rest.)"""
     n = normals / np.sqrt(np.einsum("ki,ki->k", normals, normals))[:, None]
-    t1 = np.einsum("kij,kj->ki", _CROSS[np.argmin(np.abs(n), axis=1)], n)
+    t1 = np.einsum("kij,kj->ki", AXIS_CROSS[np.argmin(np.abs(n), axis=1)], n)
     t1 /= np.sqrt(np.einsum("ki,ki->k", t1, t1))[:, None]
     frames = np.empty((len(n), 3, 3))
     frames[:, 0], frames[:, 1] = n, t1

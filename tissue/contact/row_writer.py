@@ -16,8 +16,9 @@ directions, and per body its JDS: [perm | count | jd_ptr | node | local | touche
 `JaggedDiagonal.packed`), the entries' values in the backend's float type and their block rows.
 All in one serial loop: a few hundred contacts, where a parallel loop's dispatch would cost more.
 
-The sums are written in numpy's order (einsum adds its terms one after another from zero, and
-Taichi's CPU code contracts no multiply-add), so every number is the numpy builders'.
+Every number is the numpy builders', bit for bit: Taichi's CPU code contracts no multiply-add and
+divides as numpy does (entry by entry), and the three-term sums are added in einsum's order
+(`_added`), which Taichi's fast math would reorder were it not kept by a product with a runtime 1.
 """
 
 import numpy as np
@@ -25,7 +26,7 @@ import taichi as ti
 
 from .. import backend
 from ..launch import replayed
-from .constraints import _CROSS, ConstraintRows, JaggedDiagonal
+from .constraints import AXIS_CROSS, ConstraintRows, JaggedDiagonal
 from .contacts import Contacts
 from .storage import Storage
 
@@ -36,16 +37,27 @@ N_INTS, N_REALS = 10, 13
 # per body in `counts` (after the entries' count): n_active, jagged diagonals, nnz, touched nodes,
 # where its packed ints start, where its values (and rows) start
 PER_BODY = 6
-_CROSS = _CROSS.tolist()      # (static: the kernel's constants)
+_AXIS_CROSS = AXIS_CROSS.tolist()      # (the kernel's constants)
 # A body's blocks in a contact's block row: its carrier nodes' (at most 3), or the other
 # triangle's (3); never both, no body being in contact with itself.
 MAX_BLOCKS = 3
 
 
 @ti.func
-def _moved(state: ti.template(), at, c):
-    """Coordinate c of a node's displacement over the step (free − start; state row `at`)."""
-    return state[at, c] - state[at, 3 + c]
+def _carried(state: ti.template(), ints: ti.template(), reals: ti.template(), c, nodes: ti.template(),
+             weights: ti.template(), first, i, zero_one: ti.template()):
+    """Coordinate i of the step's displacement (free − start) of contact c's point Σⱼ wⱼ xⱼ on the
+    nodes in its `nodes` columns at the weights in its `weights` columns, of the body whose state
+    rows start at `first` (einsum "kj,kjc->kc": in order)."""
+    return _added(reals[c, weights] * _moved(state, first + ints[c, nodes], i),
+                  reals[c, weights + 1] * _moved(state, first + ints[c, nodes + 1], i),
+                  reals[c, weights + 2] * _moved(state, first + ints[c, nodes + 2], i), zero_one)
+
+
+@ti.func
+def _moved(state: ti.template(), at, i):
+    """Coordinate i of a node's displacement over the step (free − start; state row `at`)."""
+    return state[at, i] - state[at, 3 + i]
 
 
 @ti.func
@@ -74,7 +86,7 @@ def _divided(v, s):
 @ti.func
 def _frame(n, zero_one: ti.template()):
     """constraints.tangent_frames of one normal: rows n, t1, t2 (t1 = n × the world axis least
-    aligned with n, as the product with _CROSS[axis] that it is there)."""
+    aligned with n, as the product with AXIS_CROSS[axis] that it is there)."""
     n = _divided(n, ti.sqrt(_dot(n, n, zero_one)))
     axis = 0
     if ti.abs(n[1]) < ti.abs(n[axis]):
@@ -85,7 +97,7 @@ def _frame(n, zero_one: ti.template()):
     for i in ti.static(range(3)):
         for a in ti.static(range(3)):
             if axis == a:
-                t1[i] = _dot(ti.Vector(_CROSS[a][i], ti.f64), n, zero_one)
+                t1[i] = _dot(ti.Vector(_AXIS_CROSS[a][i], ti.f64), n, zero_one)
     t1 = _divided(t1, ti.sqrt(_dot(t1, t1, zero_one)))
     t2 = ti.Vector([n[1] * t1[2] - n[2] * t1[1], n[2] * t1[0] - n[0] * t1[2], n[0] * t1[1] - n[1] * t1[0]])
     return ti.Matrix.rows([n, t1, t2])
@@ -124,15 +136,11 @@ def _write_rows(sizes: ti.types.ndarray(), ints: ti.types.ndarray(), reals: ti.t
             own, first = ints[c, BODY], sizes[2 + ints[c, BODY]]
             disp = ti.Vector([-reals[c, MOTION], -reals[c, MOTION + 1], -reals[c, MOTION + 2]])
             for i in ti.static(range(3)):
-                disp[i] = disp[i] + _added(reals[c, OWN_WEIGHTS] * _moved(state, first + ints[c, NODES], i),
-                                           reals[c, OWN_WEIGHTS + 1] * _moved(state, first + ints[c, NODES + 1], i),
-                                           reals[c, OWN_WEIGHTS + 2] * _moved(state, first + ints[c, NODES + 2], i), zero_one)
+                disp[i] = disp[i] + _carried(state, ints, reals, c, NODES, OWN_WEIGHTS, first, i, zero_one)
             if ints[c, SOFT] != 0:
                 other = sizes[2 + ints[c, OTHER]]
                 for i in ti.static(range(3)):
-                    disp[i] = disp[i] - _added(reals[c, WEIGHTS] * _moved(state, other + ints[c, TRIANGLE], i),
-                                               reals[c, WEIGHTS + 1] * _moved(state, other + ints[c, TRIANGLE + 1], i),
-                                               reals[c, WEIGHTS + 2] * _moved(state, other + ints[c, TRIANGLE + 2], i), zero_one)
+                    disp[i] = disp[i] - _carried(state, ints, reals, c, TRIANGLE, WEIGHTS, other, i, zero_one)
             q[3 * c] = reals[c, GAP]
             for r in ti.static(range(1, 3)):
                 q[3 * c + r] = _dot(ti.Vector([D[r, 0], D[r, 1], D[r, 2]]), disp, zero_one)
@@ -205,7 +213,7 @@ def _body_jds(b, k, n_entries, start, value_start, sizes: ti.template(), block: 
             packed[o_node + at] = node[e]
             jds_row[value_start + at] = c
             for r, i in ti.static(ti.ndrange(3, 3)):
-                jds_value[value_start + at, r, i] = value[e, r, i]
+                jds_value[value_start + at, r, i] = ti.cast(value[e, r, i], float)     # (the backend's type)
             present[first + node[e]] = 1
     # The nodes touched, in order, and each entry's index among them
     o_touched = o_local + nnz
@@ -234,7 +242,7 @@ class RowWriter:
     (which the factors' `before` and the warm start read) as they were."""
 
     def __init__(self):
-        self._sets = [Storage(host=True), Storage(host=True)]
+        self._sets = [Storage(numpy=True), Storage(numpy=True)]
         self._which = 0
         self._args = [(None, 0), (None, 0)]     # per set: the launch's arguments, and for how many contacts
 

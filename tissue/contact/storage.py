@@ -46,9 +46,12 @@ def _numpy_type(dtype):
 class Storage:
     """Named device arrays of at least a requested length; `growths` counts the reallocations."""
 
-    def __init__(self, host: bool = False):
+    def __init__(self, host: bool = False, numpy: bool = False):
+        """host: numpy arrays on the CPU (HostArray), Taichi ndarrays elsewhere; numpy: numpy
+        arrays on every arch (for a launch that takes them as they are: on a GPU, Taichi copies
+        them there and back at each launch)."""
         self._growths = 0
-        self.host = host and backend.current().arch == "cpu"
+        self.host = numpy or (host and backend.current().arch == "cpu")
         self._arrays = {}
         self._views = {}
         self._packs = {}
@@ -70,7 +73,7 @@ class Storage:
         its growths count as this one's."""
         kept = self._children.get(name)
         if kept is None:
-            kept = self._children[name] = Storage(self.host)
+            kept = self._children[name] = Storage(numpy=self.host)
         return kept
 
     def get(self, name, n: int, dtype, tail: tuple = ()):
