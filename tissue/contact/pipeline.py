@@ -19,8 +19,10 @@ directions, its compliance h A_hap⁻¹ I₃, its correction a translation); its
 the device's pose opens the stage.
 
 Kernel launches per step (warped): one detection launch per body (plus one per further body pair
-with three or more bodies), one for W's factors and one for the correction per touched body, one
-for the Gauss-Seidel; everything between them is a few dozen numpy operations on arrays of contacts.
+with three or more bodies), one for the rows and their JDS where they are built anew
+(tissue.contact.row_writer; without attachments or jaws), one for W's factors and one for the
+correction per touched body, one for the Gauss-Seidel; everything between them is a few dozen
+numpy operations on arrays of contacts.
 Why factors: the contact points outnumber the nodes they move (the pressed liver: 147 contacts, 441
 rows, on 54 nodes), so the compliance among those nodes (162², 0.2 MB) is smaller than W (441²,
 1.6 MB), and forming W (the paper's kernel 2) is skipped.
