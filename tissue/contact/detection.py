@@ -10,13 +10,15 @@ What a contact point and a contact are: tissue.contact.contacts.
               obstacles are queried on the host with open3d (closest point, and inside/outside
               by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
-              distance, binned in a uniform grid built on the device each step (box, counting
-              sort); narrow phase: one thread per sample, exact point–triangle distance to the
-              triangles of its cell (Ericson's Voronoi-region test), ties to the lowest triangle
-              id. Inside/outside is the sign of (p - c) against the interpolated area-weighted
-              vertex normal at c, which stays right at edges and corners where a face normal can
-              point either way. Both directions are detected (samples of A against triangles of
-              B and of B against A).
+              distance and a skin, binned in a uniform grid built on the device (box, counting
+              sort) and kept, Verlet-style, until a surface node has moved by more than the skin
+              (`_detect_soft` says why the hits are the same); narrow phase: one thread per
+              sample, exact point–triangle distance to the triangles of its cell whose box is
+              within the alarm distance (Ericson's Voronoi-region test), ties to the lowest
+              triangle id. Inside/outside is the sign of (p - c) against the interpolated
+              area-weighted vertex normal at c, which stays right at edges and corners where a
+              face normal can point either way. Both directions are detected (samples of A
+              against triangles of B and of B against A).
 
 For one body this is a kernel launch against the obstacles (`_detect_rigid`) and one against each
 other soft body (`_detect_soft`), writing into a buffer kept between calls (`HitBuffer`,
@@ -46,11 +48,12 @@ from .. import backend
 from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
 from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
-                       within_box)
+                       within_box, within_corners)
 from .hits import HitBuffer
 from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
+GRID_SKIN = 0.5     # the soft–soft grid is kept while the surface moves less than this times the alarm distance
 SERIAL_BELOW_POINTS = 30_000      # contact points: below, the CPU runs the detection loops on one thread
 
 
@@ -63,9 +66,9 @@ def _serial(samples) -> bool:
 # The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
 # the start of the step) velocities, and the obstacles' primitives and their bounds (RIGID:
 # what the obstacles' launch reads; the launcher costs per ndarray, replayed or not); the soft
-# launch's adds body B's positions, surface, vertex normals and triangle grid.
+# launch's adds body B's positions, surface, faces around each node and triangle grid.
 RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds")
-SOFT_MEMBERS = (*RIGID_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "normals", "start", "cursor", "ids",
+SOFT_MEMBERS = (*RIGID_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "reference", "start", "cursor", "ids",
                 "grid_i", "grid_f")
 DETECT_RIGID = ti.types.argpack(**{name: ti.types.ndarray() for name in RIGID_MEMBERS})
 DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in SOFT_MEMBERS})
@@ -144,73 +147,98 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
                 out[s, o, 9] = -1.0
 
 
+@ti.func
+def _vertex_normal(det: ti.template(), node):
+    """Body B's area-weighted normal at a surface node: its faces' cross products summed in
+    ascending face id, normalised."""
+    nv = ti.Vector([0.0, 0.0, 0.0])
+    for m in range(det.vf_offsets[node], det.vf_offsets[node + 1]):
+        f = det.faces[det.vf[m]]
+        nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
+    return nv / ti.max(nv.norm(), 1e-300)
+
+
 @ti.kernel
 def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
-                 cell0: float, alarm: float, slot: ti.i32, h: float, copy_state: ti.i32, serial: ti.template()):
+                 cell0: float, alarm: float, margin: float, slot: ti.i32, h: float, copy_state: ti.i32,
+                 serial: ti.template()):
     """Body A's contact candidates on body B's surface, in one launch: B's triangle grid (box,
-    counting sort), B's vertex normals, then per sample the nearest triangle of its cell within
-    `alarm`. gap[s, slot]: its gap, 1e300 for none; a hit's out[s, slot] = [normal (3), closest
-    point (3), weights on B's triangle (3), triangle id]. copy_state: see _copy_state."""
+    counting sort) unless the one kept still holds, then per sample the nearest triangle of its
+    cell within `alarm`. gap[s, slot]: its gap, 1e300 for none; a hit's out[s, slot] = [normal
+    (3), closest point (3), weights on B's triangle (3), triangle id]. copy_state: see _copy_state.
+
+    The grid bins each triangle in the cells its box grown by `margin` (≥ alarm) meets, and keeps
+    B's surface positions it was built from (`reference`): while no surface node has moved by
+    more than margin − alarm along any axis since, each triangle lies within its binned box
+    shrunk by alarm, so a sample within alarm of it still lies in a cell it is binned in, and the
+    grid is kept (grid_i[5]: built whole; grid_i[6]: built at this launch). The sample's nearest
+    triangle is the same in any cell that holds it (ties: the lowest id), so the hits do not
+    depend on when the grid was built."""
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     nf = det.faces.shape[0]
     ti.loop_config(serialize=serial)
-    for _ in range(1):                          # serial: the grid's box, cell size and dims
-        lo = ti.Vector([1e300, 1e300, 1e300])
-        hi = -lo
-        for k in range(det.surface.shape[0]):
-            p = det.xb[det.surface[k]]
-            lo, hi = ti.min(lo, p), ti.max(hi, p)
-        lo -= alarm
-        hi += alarm
-        cell = cell0
-        extent = (hi - lo) / cell
-        while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
-            cell *= 1.26
+    for _ in range(1):                          # serial: whether the grid holds; if not, its box, cell size and dims
+        holds = det.grid_i[5] == 1
+        slack = det.grid_f[4] - alarm           # the margin it was built with, beyond the alarm distance
+        m = 0
+        while holds and m < det.surface.shape[0]:
+            holds = (ti.abs(det.xb[det.surface[m]] - det.reference[m])).max() <= slack
+            m += 1
+        det.grid_i[6] = 0 if holds else 1
+        if not holds:
+            lo = ti.Vector([1e300, 1e300, 1e300])
+            hi = -lo
+            for k in range(det.surface.shape[0]):
+                p = det.xb[det.surface[k]]
+                det.reference[k] = p
+                lo, hi = ti.min(lo, p), ti.max(hi, p)
+            lo -= margin
+            hi += margin
+            cell = cell0
             extent = (hi - lo) / cell
-        dims = ti.cast(ti.floor(extent), ti.i32) + 1
-        for i in ti.static(range(3)):
-            det.grid_f[i] = lo[i]
-            det.grid_i[i] = dims[i]
-        det.grid_f[3] = cell
-        det.grid_i[3] = dims[0] * dims[1] * dims[2]
+            while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
+                cell *= 1.26
+                extent = (hi - lo) / cell
+            dims = ti.cast(ti.floor(extent), ti.i32) + 1
+            for i in ti.static(range(3)):
+                det.grid_f[i] = lo[i]
+                det.grid_i[i] = dims[i]
+            det.grid_f[3] = cell
+            det.grid_f[4] = margin
+            det.grid_i[3] = dims[0] * dims[1] * dims[2]
     origin = ti.Vector([det.grid_f[0], det.grid_f[1], det.grid_f[2]])
     cell = det.grid_f[3]
     dims = ti.Vector([det.grid_i[0], det.grid_i[1], det.grid_i[2]])
     ti.loop_config(serialize=serial)
-    for c in range(det.grid_i[3] + 1):
+    for c in range((det.grid_i[3] + 1) * det.grid_i[6]):
         det.start[c] = 0
     ti.loop_config(serialize=serial)
-    for f in range(nf):                         # count the triangles of each cell
+    for f in range(nf * det.grid_i[6]):         # count the triangles of each cell
         a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-        i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+        i0, i1 = cell_range(ti.min(a, b, c) - margin, ti.max(a, b, c) + margin, origin, cell, dims)
         for i in range(i0[0], i1[0] + 1):       # (nested: an inner ti.ndrange divides for its indices)
             for j in range(i0[1], i1[1] + 1):
                 for k in range(i0[2], i1[2] + 1):
                     ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
     ti.loop_config(serialize=serial)
     for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
-        for c in range(det.grid_i[3]):
-            det.start[c + 1] += det.start[c]
-            det.cursor[c] = det.start[c]
-        det.grid_i[4] = det.start[det.grid_i[3]]
+        if det.grid_i[6]:
+            for c in range(det.grid_i[3]):
+                det.start[c + 1] += det.start[c]
+                det.cursor[c] = det.start[c]
+            det.grid_i[4] = det.start[det.grid_i[3]]
+            det.grid_i[5] = 1 if det.grid_i[4] <= det.ids.shape[0] else 0
         gap[ns, slot] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
     ti.loop_config(serialize=serial)
-    for f in range(nf):                         # fill (order within a cell: any; see below)
-        if det.grid_i[4] <= det.ids.shape[0]:
+    for f in range(nf * det.grid_i[6]):         # fill (order within a cell: any; see below)
+        if det.grid_i[5]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-            i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+            i0, i1 = cell_range(ti.min(a, b, c) - margin, ti.max(a, b, c) + margin, origin, cell, dims)
             for i in range(i0[0], i1[0] + 1):
                 for j in range(i0[1], i1[1] + 1):
                     for k in range(i0[2], i1[2] + 1):
                         det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
-    ti.loop_config(serialize=serial)
-    for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
-        nv = ti.Vector([0.0, 0.0, 0.0])
-        for m in range(det.vf_offsets[k], det.vf_offsets[k + 1]):
-            f = det.faces[det.vf[m]]
-            nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
-        det.normals[det.surface[k]] = nv / ti.max(nv.norm(), 1e-300)
     ti.loop_config(serialize=serial)
     for s in range(ns):                         # narrow phase
         gap[s, slot] = 1e300
@@ -218,23 +246,26 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
         ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
         best, best_face = 1e300, -1
         best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
-        if det.grid_i[4] <= det.ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
-                and 0 <= ijk[2] < dims[2]:
+        if det.grid_i[5] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
             cid = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
             for m in range(det.start[cid], det.start[cid + 1]):
                 f = det.ids[m]
                 a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-                w = closest_on_triangle(p, a, b, c)
-                q = w[0] * a + w[1] * b + w[2] * c
-                d = (p - q).norm()
-                # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
-                # id, so the result does not depend on the order the cell was filled in.
-                if d < best or (d == best and f < best_face):
-                    best, best_face, best_w, best_c = d, f, w, q
+                # A triangle whose box is beyond the alarm distance (with room for rounding) is
+                # farther: it cannot be the nearest of a hit, and is not measured.
+                if within_corners(ti.min(a, b, c), ti.max(a, b, c), p, alarm * (1.0 + 1e-9)):
+                    w = closest_on_triangle(p, a, b, c)
+                    q = w[0] * a + w[1] * b + w[2] * c
+                    d = (p - q).norm()
+                    # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
+                    # id, so the result does not depend on the order the cell was filled in.
+                    if d < best or (d == best and f < best_face):
+                        best, best_face, best_w, best_c = d, f, w, q
         if best_face >= 0 and best <= alarm:
             f = det.faces[best_face]
             a, b, c = det.xb[f[0]], det.xb[f[1]], det.xb[f[2]]
-            vn = best_w[0] * det.normals[f[0]] + best_w[1] * det.normals[f[1]] + best_w[2] * det.normals[f[2]]
+            vn = best_w[0] * _vertex_normal(det, f[0]) + best_w[1] * _vertex_normal(det, f[1]) \
+                + best_w[2] * _vertex_normal(det, f[2])
             d = p - best_c
             n = (b - a).cross(c - a).normalized()
             g = 0.0
@@ -285,23 +316,24 @@ class _Surface:
         self.faces_np = faces
         self.n_samples = len(nodes)
         surface = np.unique(faces).astype(np.int32)
-        # Faces around each surface node (CSR, ascending face id), for the vertex normals.
-        corner_node = np.searchsorted(surface, faces.reshape(-1))
-        order = np.argsort(corner_node, kind="stable")
-        offsets = np.zeros(len(surface) + 1, np.int32)
-        np.cumsum(np.bincount(corner_node, minlength=len(surface)), out=offsets[1:])
+        # Faces around each node (CSR by node id, ascending face id), for the vertex normals.
+        self.n_nodes = n_nodes
+        corners = faces.reshape(-1)
+        offsets = np.zeros(max(n_nodes, int(corners.max(initial=-1)) + 1) + 1, np.int32)
+        np.cumsum(np.bincount(corners, minlength=len(offsets) - 1), out=offsets[1:])
         self.nodes, self.weights = _array(nodes, ti.i32, 3), _array(weights.astype(npr), real, 3)
         self.faces = _array(faces, ti.i32, 3)
         self.surface = _array(surface, ti.i32)
         self.vf_offsets = _array(offsets, ti.i32)
-        self.vf = _array((order // 3).astype(np.int32), ti.i32)
-        self.normals = ti.ndarray(ti.types.vector(3, real), max(n_nodes, 1))
-        # The grid of this body's triangles (built on the device at each detection).
+        self.vf = _array((np.argsort(corners, kind="stable") // 3).astype(np.int32), ti.i32)
+        # The grid of this body's triangles (built on the device when the one kept no longer
+        # holds: _detect_soft), and the surface positions it was built from.
         self.start = ti.ndarray(ti.i32, GRID_MAX_CELLS + 1)
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
-        self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
+        self.grid_i, self.grid_f = _array(np.zeros(8, np.int32), ti.i32), ti.ndarray(real, 5)
+        self.reference = ti.ndarray(ti.types.vector(3, real), max(len(surface), 1))
         self.cell = None                          # base cell size: set at the first detection
-        self.cell0 = None                         # cell + 2 alarm: the launch's cell0 (_run_soft)
+        self.cell0 = self.margin = None           # the launch's cell0 and margin (_run_soft)
         self.gap, self.out = gap, out             # its rows of the Detector's HitBuffer
 
 
@@ -389,7 +421,7 @@ class Detector:
 
     def _setup(self, fields_):
         sizes = [f.shape[0] for f in fields_]
-        if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
+        if self._bodies is None or [b.n_nodes for b in self._bodies] != sizes:
             self._hits = HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
             self._bodies = [_Surface(f, s, n, gap, out, self.real, self._np)
                             for f, s, n, (gap, out) in zip(self.faces, self.samples, sizes, self._hits.outs)]
@@ -459,14 +491,14 @@ class Detector:
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
         slot = len(self.obstacles) + body.others.index(b)
         gap = body.surface.gap
-        cell0 = other.cell + 2 * body.alarm
-        if cell0 != other.cell0:        # else the same float object as before: the launch replays by identity
-            other.cell0 = cell0
+        margin = (1.0 + GRID_SKIN) * body.alarm * (1.0 + 1e-9)    # (room for rounding: see _detect_soft)
+        if margin != other.margin:      # else the same float objects as before: the launch replays by identity
+            other.margin, other.cell0 = margin, other.cell + 2 * margin
         while True:
             pack = self._pack((body.index, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets,
-                                                        other.vf, other.normals, other.start, other.cursor, ids,
+                                                        other.vf, other.reference, other.start, other.cursor, ids,
                                                         other.grid_i, other.grid_f))     # SOFT_MEMBERS
-            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell0, body.alarm,
+            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell0, body.alarm, other.margin,
                                   slot, body.dt, copy_state, self.serial)
             needed = int(gap[-1, slot])
             if needed <= ids.shape[0]:

@@ -125,7 +125,13 @@ def within_ball(balls: ti.template(), k, p, reach):
 @ti.func
 def within_box(boxes: ti.template(), k, col, p, reach):
     """Whether p lies within `reach` of the box in row k's columns col..col+5 (low, high corner)."""
-    d = ti.max(vector_at(boxes, k, col) - p, p - vector_at(boxes, k, col + 3), 0.0)
+    return within_corners(vector_at(boxes, k, col), vector_at(boxes, k, col + 3), p, reach)
+
+
+@ti.func
+def within_corners(lo, hi, p, reach):
+    """Whether p lies within `reach` of the box with corners lo and hi."""
+    d = ti.max(lo - p, p - hi, 0.0)
     return d.dot(d) <= reach * reach
 
 
