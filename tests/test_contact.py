@@ -96,12 +96,13 @@ def test_primitive_distances_match_closed_forms(backend):
 
 
 def test_culled_primitives_give_the_nearest_within_alarm(backend):
-    """The primitives' boxes and their groups' boxes (a rib's pieces) skip only what is beyond the
-    alarm distance: every point finds the nearest of 20 rib capsules and a sphere, as a search
-    over all of them does."""
+    """The primitives' boxes and their groups' boxes (a rib's pieces), and the obstacle's grid of
+    primitives, skip only what is beyond the alarm distance: every point finds the nearest of 20
+    rib capsules and a sphere, as a search over all of them does, at an alarm distance within the
+    grid's margin (the grid's cells) and one beyond it (the groups)."""
     from scenes.liver_press import rib_segments
     from tissue.contact.detection import Detector
-    from tissue.contact.geometry import primitive_bounds
+    from tissue.contact.geometry import primitive_bounds, primitive_grid
     from tissue.contact.obstacles import Capsule, RigidObstacle, Sphere
 
     ends = np.array(rib_segments()).reshape(-1, 2, 3)
@@ -119,11 +120,13 @@ def test_culled_primitives_give_the_nearest_within_alarm(backend):
     rng = np.random.default_rng(1)
     p = rng.uniform([-0.15, -0.08, -0.03], [0.0, 0.11, 0.06], (3000, 3))
     faces = np.arange(len(p)).reshape(-1, 3)
-    alarm = 0.004
-    c = Detector([faces], [ribs], soft_soft=False).detect([p], alarm)
     nearest = gaps(p).min(axis=1)
-    np.testing.assert_array_equal(np.sort(c.vertex), np.flatnonzero(nearest <= alarm))
-    np.testing.assert_allclose(c.gap, nearest[c.vertex], atol=1e-12)
+    margin = primitive_grid(ribs.bounding_boxes(), 0, 0)[0][8]
+    for alarm in (0.004, 1.5 * margin):
+        assert (alarm <= margin) == (alarm == 0.004)
+        c = Detector([faces], [ribs], soft_soft=False).detect([p], alarm)
+        np.testing.assert_array_equal(np.sort(c.vertex), np.flatnonzero(nearest <= alarm))
+        np.testing.assert_allclose(c.gap, nearest[c.vertex], atol=1e-12)
 
 
 def test_rigid_contact_within_alarm_at_the_step_start_is_found(backend):

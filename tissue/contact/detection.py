@@ -47,8 +47,8 @@ import taichi as ti
 from .. import backend
 from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
-from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
-                       within_box, within_corners)
+from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, primitive_grid,
+                       sample_point, vector_at, within_ball, within_box, within_corners)
 from .hits import HitBuffer
 from .storage import Storage
 
@@ -67,7 +67,7 @@ def _serial(samples) -> bool:
 # the start of the step) velocities, and the obstacles' primitives and their bounds (RIGID:
 # what the obstacles' launch reads; the launcher costs per ndarray, replayed or not); the soft
 # launch's adds body B's positions, surface, faces around each node and triangle grid.
-RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds")
+RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_index", "prm_bounds", "bounds")
 SOFT_MEMBERS = (*RIGID_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "reference", "start", "cursor", "ids",
                 "grid_i", "grid_f")
 DETECT_RIGID = ti.types.argpack(**{name: ti.types.ndarray() for name in RIGID_MEMBERS})
@@ -85,6 +85,18 @@ def _copy_state(det: ti.template(), state: ti.template(), h, copy_state, serial:
         for c in ti.static(range(3)):
             state[k, c] = p[c]
             state[k, 3 + c] = p[c] - h * u[c]
+
+
+@ti.func
+def _nearer(det: ti.template(), j, p, reach, best):
+    """[gap, normal (3), closest point (3)] of primitive j to p if its box is within `reach` and its
+    gap below best's, else best."""
+    out = best
+    if within_box(det.prm_bounds, j, 0, p, reach):
+        r = closest_on_primitive(det.prm, j, p)
+        if r[0] < best[0]:
+            out = r
+    return out
 
 
 @ti.kernel
@@ -105,7 +117,7 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
         # that may are tested there as they are, so the hits do not change.
         free = sample_point(det.xa, det.nodes, det.weights, s)
         grow = alarm + h * sample_point(det.va, det.nodes, det.weights, s).norm()
-        for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
+        for o in range(det.bounds.shape[0]):     # (not ti.ndrange: it divides for its indices)
             d = free - ti.Vector([poses[o, 12], poses[o, 13], poses[o, 14]])
             bound = (poses[o, 15] + grow) * (1.0 + 1e-9)
             if poses[o, 15] >= 0.0 and d.dot(d) > bound * bound:
@@ -120,19 +132,26 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounds farther than `reach` skip what they hold, which cannot be within it: the
             # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
-            # (see primitive_bounds) the group's, a primitive's box the primitive. Those tested are
-            # tested in order, so the nearest (ties: the first) is the one all of them would give.
+            # (see primitive_bounds) the group's, a primitive's box the primitive; within its
+            # grid's margin, p's cell (see primitive_grid) lists all primitives that may be. Those
+            # tested are tested in order, so the nearest (ties: the first) is the one all of them
+            # would give.
             if within_ball(det.bounds, o, p, reach):
-                k = det.prm_offsets[o]
-                while k < det.prm_offsets[o + 1]:
-                    end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                    if within_box(det.prm_bounds, k, 6, p, reach):
-                        for j in range(k, end):
-                            if within_box(det.prm_bounds, j, 0, p, reach):
-                                r = closest_on_primitive(det.prm, j, p)
-                                if r[0] < best[0]:
-                                    best = r
-                    k = end
+                if reach <= det.bounds[o, 12]:
+                    ijk = ti.cast(ti.floor((p - vector_at(det.bounds, o, 4)) / det.bounds[o, 7]), ti.i32)
+                    dims = ti.cast(vector_at(det.bounds, o, 8), ti.i32)
+                    if 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
+                        cid = ti.cast(det.bounds[o, 11], ti.i32) + (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
+                        for m in range(det.prm_index[cid], det.prm_index[cid + 1]):
+                            best = _nearer(det, det.prm_index[m], p, reach, best)
+                else:
+                    k = det.prm_index[o]
+                    while k < det.prm_index[o + 1]:
+                        end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                        if within_box(det.prm_bounds, k, 6, p, reach):
+                            for j in range(k, end):
+                                best = _nearer(det, j, p, reach, best)
+                        k = end
             # Within `alarm` at the free position, or at the step's start (the gap less the free
             # motion along the normal): see the module docstring.
             start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
@@ -380,17 +399,26 @@ class Detector:
         self.has_primitives = sum(counts) > 0
         offsets = np.r_[0, np.cumsum(counts)]
         self._prm = ti.ndarray(self.real, (max(1, sum(counts)), 16))
-        self._prm_offsets = _array(offsets.astype(np.int32), ti.i32)
         self._prm_bounds = ti.ndarray(self.real, (max(1, sum(counts)), 13))
-        self._bounds = ti.ndarray(self.real, (max(1, len(self.obstacles)), 4))
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
             self._prm_bounds.from_numpy(np.concatenate(
                 [primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
         self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
-        if self.obstacles:
-            self._bounds.from_numpy(self._balls.astype(self._np))
+        # Per obstacle its ball and its grid (see primitive_grid; margin -1: none); the obstacles'
+        # first primitives, then their grids' cell starts and primitive ids.
+        bounds = np.zeros((max(1, len(self.obstacles)), 13))
+        bounds[:len(self.obstacles), :4], bounds[:, 12] = self._balls, -1.0
+        index = [offsets]
+        for o, obstacle in enumerate(self.obstacles):
+            grid = primitive_grid(obstacle.bounding_boxes(), offsets[o], sum(map(len, index)))
+            if grid is not None:
+                bounds[o, 4:], part = grid
+                index.append(part)
+        self._bounds = ti.ndarray(self.real, bounds.shape)
+        self._bounds.from_numpy(bounds.astype(self._np))
+        self._prm_index = _array(np.concatenate(index).astype(np.int32), ti.i32)
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
         self._poses = np.zeros((max(1, len(self.obstacles)), 16), self._np)    # see _detect_rigid
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
@@ -472,7 +500,7 @@ class Detector:
         launches = [(body.others[0] if body.others else body.index, self.has_primitives, bool(body.others))]
         launches += [(b, False, True) for b in body.others[1:]]
         own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v, self._prm,
-               self._prm_offsets, self._prm_bounds, self._bounds)                     # RIGID_MEMBERS
+               self._prm_index, self._prm_bounds, self._bounds)                     # RIGID_MEMBERS
         for k, (b, rigid, soft) in enumerate(launches):
             copy_state = int(body.v is not None and k == 0)
             if rigid:
