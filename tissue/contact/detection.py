@@ -63,12 +63,13 @@ def _serial(samples) -> bool:
     return backend.current().arch == "cpu" and sum(len(nodes) for nodes, _ in samples) < SERIAL_BELOW_POINTS
 
 
-# The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
-# the start of the step) velocities, and the obstacles' primitives and their bounds (RIGID:
-# what the obstacles' launch reads; the launcher costs per ndarray, replayed or not); the soft
-# launch's adds body B's positions, surface, faces around each node and triangle grid.
-RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_index", "prm_bounds", "bounds")
-SOFT_MEMBERS = (*RIGID_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "reference", "start", "cursor", "ids",
+# The arrays of a detection launch, in one flat argpack holding only what it reads (the launcher
+# costs per ndarray, replayed or not): body A's positions, samples and (for the start of the step)
+# velocities (OWN), then the obstacles' primitives and their bounds (RIGID), or body B's
+# positions, surface, faces around each node and triangle grid (SOFT).
+OWN_MEMBERS = ("xa", "nodes", "weights", "va")
+RIGID_MEMBERS = (*OWN_MEMBERS, "prm", "prm_index", "prm_bounds", "bounds")
+SOFT_MEMBERS = (*OWN_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "reference", "start", "cursor", "ids",
                 "grid_i", "grid_f")
 DETECT_RIGID = ti.types.argpack(**{name: ti.types.ndarray() for name in RIGID_MEMBERS})
 DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in SOFT_MEMBERS})
@@ -419,6 +420,7 @@ class Detector:
         self._bounds = ti.ndarray(self.real, bounds.shape)
         self._bounds.from_numpy(bounds.astype(self._np))
         self._prm_index = _array(np.concatenate(index).astype(np.int32), ti.i32)
+        self._obstacle_arrays = (self._prm, self._prm_index, self._prm_bounds, self._bounds)   # RIGID_MEMBERS after OWN
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
         self._poses = np.zeros((max(1, len(self.obstacles)), 16), self._np)    # see _detect_rigid
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
@@ -499,19 +501,19 @@ class Detector:
             return
         launches = [(body.others[0] if body.others else body.index, self.has_primitives, bool(body.others))]
         launches += [(b, False, True) for b in body.others[1:]]
-        own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v, self._prm,
-               self._prm_index, self._prm_bounds, self._bounds)                     # RIGID_MEMBERS
+        own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v)   # OWN_MEMBERS
         for k, (b, rigid, soft) in enumerate(launches):
             copy_state = int(body.v is not None and k == 0)
             if rigid:
-                _detect_rigid_replayed(self._pack((body.index, None), DETECT_RIGID, own), poses, surface.gap,
-                                       surface.out, body.state, body.alarm, body.dt, copy_state, self.serial)
+                pack = self._pack((body.index, None), DETECT_RIGID, (*own, *self._obstacle_arrays))
+                _detect_rigid_replayed(pack, poses, surface.gap, surface.out, body.state, body.alarm, body.dt,
+                                       copy_state, self.serial)
             if soft:
                 self._run_soft(body, own, b, fields_[b], 0 if rigid else copy_state)
 
     def _run_soft(self, body: _BodyDetection, own, b, xb, copy_state) -> None:
         """Body A's launch against body b's surface at positions xb (`own`: body A's arrays of the
-        launch, RIGID_MEMBERS)."""
+        launch, OWN_MEMBERS)."""
         other = self._bodies[b]
         if other.cell is None:                        # the median triangle extent, at the first call
             tri = xb.to_numpy().astype(np.float64)[other.faces_np]
