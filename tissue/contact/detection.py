@@ -88,18 +88,6 @@ def _copy_state(det: ti.template(), state: ti.template(), h, copy_state, serial:
             state[k, 3 + c] = p[c] - h * u[c]
 
 
-@ti.func
-def _nearer(det: ti.template(), j, p, reach, best):
-    """[gap, normal (3), closest point (3)] of primitive j to p if its box is within `reach` and its
-    gap below best's, else best."""
-    out = best
-    if within_box(det.prm_bounds, j, 0, p, reach):
-        r = closest_on_primitive(det.prm, j, p)
-        if r[0] < best[0]:
-            out = r
-    return out
-
-
 @ti.kernel
 def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.ndarray(), out: ti.types.ndarray(),
                   state: ti.types.ndarray(), alarm: float, h: float, copy_state: ti.i32, serial: ti.template()):
@@ -138,21 +126,32 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
             # tested are tested in order, so the nearest (ties: the first) is the one all of them
             # would give.
             if within_ball(det.bounds, o, p, reach):
-                if reach <= det.bounds[o, 12]:
+                # The primitives in turn from k to stop: the obstacle's, a group skipped at its
+                # first where its box is beyond reach; or, listed, those of p's cell (one loop:
+                # the closest-point code is compiled once).
+                k, stop, listed = det.prm_index[o], det.prm_index[o + 1], reach <= det.bounds[o, 12]
+                if listed:
                     ijk = ti.cast(ti.floor((p - vector_at(det.bounds, o, 4)) / det.bounds[o, 7]), ti.i32)
                     dims = ti.cast(vector_at(det.bounds, o, 8), ti.i32)
+                    k, stop = 0, 0
                     if 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
                         cid = ti.cast(det.bounds[o, 11], ti.i32) + (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
-                        for m in range(det.prm_index[cid], det.prm_index[cid + 1]):
-                            best = _nearer(det, det.prm_index[m], p, reach, best)
-                else:
-                    k = det.prm_index[o]
-                    while k < det.prm_index[o + 1]:
-                        end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                        if within_box(det.prm_bounds, k, 6, p, reach):
-                            for j in range(k, end):
-                                best = _nearer(det, j, p, reach, best)
-                        k = end
+                        k, stop = det.prm_index[cid], det.prm_index[cid + 1]
+                group_end = k
+                while k < stop:
+                    if not listed and k == group_end:
+                        group_end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                        if not within_box(det.prm_bounds, k, 6, p, reach):
+                            k = group_end
+                            continue
+                    j = k
+                    if listed:
+                        j = det.prm_index[k]
+                    if within_box(det.prm_bounds, j, 0, p, reach):
+                        r = closest_on_primitive(det.prm, j, p)
+                        if r[0] < best[0]:
+                            best = r
+                    k += 1
             # Within `alarm` at the free position, or at the step's start (the gap less the free
             # motion along the normal): see the module docstring.
             start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
@@ -284,8 +283,10 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
         if best_face >= 0 and best <= alarm:
             f = det.faces[best_face]
             a, b, c = det.xb[f[0]], det.xb[f[1]], det.xb[f[2]]
-            vn = best_w[0] * _vertex_normal(det, f[0]) + best_w[1] * _vertex_normal(det, f[1]) \
-                + best_w[2] * _vertex_normal(det, f[2])
+            vn = ti.Vector([0.0, 0.0, 0.0])
+            for i in range(3):                  # (not unrolled: the normal's code is compiled once)
+                corner = f[0] if i == 0 else (f[1] if i == 1 else f[2])
+                vn += (best_w[0] if i == 0 else (best_w[1] if i == 1 else best_w[2])) * _vertex_normal(det, corner)
             d = p - best_c
             n = (b - a).cross(c - a).normalized()
             g = 0.0
