@@ -54,6 +54,7 @@ from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
 GRID_SKIN = 0.5     # the soft–soft grid is kept while the surface moves less than this times the alarm distance
+ROOM = 1e-5         # of the alarm distance: room for rounding in the soft–soft pruning (float32's too)
 SERIAL_BELOW_POINTS = 30_000      # contact points: below, the CPU runs the detection loops on one thread
 
 
@@ -186,20 +187,20 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     cell within `alarm`. gap[s, slot]: its gap, 1e300 for none; a hit's out[s, slot] = [normal
     (3), closest point (3), weights on B's triangle (3), triangle id]. copy_state: see _copy_state.
 
-    The grid bins each triangle in the cells its box grown by `margin` (≥ alarm) meets, and keeps
+    The grid bins each triangle in the cells its box grown by `margin` (> alarm) meets, and keeps
     B's surface positions it was built from (`reference`): while no surface node has moved by
-    more than margin − alarm along any axis since, each triangle lies within its binned box
-    shrunk by alarm, so a sample within alarm of it still lies in a cell it is binned in, and the
-    grid is kept (grid_i[5]: built whole; grid_i[6]: built at this launch). The sample's nearest
-    triangle is the same in any cell that holds it (ties: the lowest id), so the hits do not
-    depend on when the grid was built."""
+    more than margin − alarm along any axis since (less ROOM × alarm for rounding), each triangle
+    lies within its binned box shrunk by alarm, so a sample within alarm of it still lies in a
+    cell it is binned in, and the grid is kept (grid_i[5]: built whole; grid_i[6]: built at this
+    launch). The sample's nearest triangle is the same in any cell that holds it (ties: the lowest
+    id), so the hits do not depend on when the grid was built."""
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     nf = det.faces.shape[0]
     ti.loop_config(serialize=serial)
     for _ in range(1):                          # serial: whether the grid holds; if not, its box, cell size and dims
         holds = det.grid_i[5] == 1
-        slack = det.grid_f[4] - alarm           # the margin it was built with, beyond the alarm distance
+        slack = det.grid_f[4] - alarm * (1.0 + ROOM)    # the margin it was built with, beyond the alarm distance
         m = 0
         while holds and m < det.surface.shape[0]:
             holds = (ti.abs(det.xb[det.surface[m]] - det.reference[m])).max() <= slack
@@ -272,7 +273,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
                 a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
                 # A triangle whose box is beyond the alarm distance (with room for rounding) is
                 # farther: it cannot be the nearest of a hit, and is not measured.
-                if within_corners(ti.min(a, b, c), ti.max(a, b, c), p, alarm * (1.0 + 1e-9)):
+                if within_corners(ti.min(a, b, c), ti.max(a, b, c), p, alarm * (1.0 + ROOM)):
                     w = closest_on_triangle(p, a, b, c)
                     q = w[0] * a + w[1] * b + w[2] * c
                     d = (p - q).norm()
@@ -522,7 +523,7 @@ class Detector:
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
         slot = len(self.obstacles) + body.others.index(b)
         gap = body.surface.gap
-        margin = (1.0 + GRID_SKIN) * body.alarm * (1.0 + 1e-9)    # (room for rounding: see _detect_soft)
+        margin = (1.0 + GRID_SKIN) * body.alarm
         if margin != other.margin:      # else the same float objects as before: the launch replays by identity
             other.margin, other.cell0 = margin, other.cell + 2 * margin
         while True:

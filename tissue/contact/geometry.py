@@ -184,7 +184,7 @@ def primitive_grid(boxes: np.ndarray, first: int, at: int):
     if len(boxes) < GRID_MIN_PRIMITIVES or np.any(np.abs(boxes) >= 1e299):
         return None
     margin = float(np.median((boxes[:, 3:] - boxes[:, :3]).max(axis=1))) / 5
-    grown = margin * (1.0 + 1e-6)
+    grown = margin * (1.0 + 1e-4)            # (room for rounding, float32's too)
     lo, hi = boxes[:, :3] - grown, boxes[:, 3:] + grown
     origin = lo.min(axis=0)
     cell = margin
