@@ -117,42 +117,43 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
             p = R.transpose() @ (sample_point(det.xa, det.nodes, det.weights, s) - t)
-            moved = R.transpose() @ (h * sample_point(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
-            reach = alarm + moved.norm()
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounds farther than `reach` skip what they hold, which cannot be within it: the
             # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
             # (see primitive_bounds) the group's, a primitive's box the primitive; within its
-            # grid's margin, p's cell (see primitive_grid) lists all primitives that may be. Those
-            # tested are tested in order, so the nearest (ties: the first) is the one all of them
-            # would give.
-            if within_ball(det.bounds, o, p, reach):
-                # The primitives in turn from k to stop: the obstacle's, a group skipped at its
-                # first where its box is beyond reach; or, listed, those of p's cell (one loop:
-                # the closest-point code is compiled once).
-                k, stop, listed = det.prm_index[o], det.prm_index[o + 1], reach <= det.bounds[o, 12]
-                if listed:
-                    ijk = ti.cast(ti.floor((p - vector_at(det.bounds, o, 4)) / det.bounds[o, 7]), ti.i32)
-                    dims = ti.cast(vector_at(det.bounds, o, 8), ti.i32)
-                    k, stop = 0, 0
-                    if 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
-                        cid = ti.cast(det.bounds[o, 11], ti.i32) + (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
-                        k, stop = det.prm_index[cid], det.prm_index[cid + 1]
-                group_end = k
-                while k < stop:
-                    if not listed and k == group_end:
-                        group_end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                        if not within_box(det.prm_bounds, k, 6, p, reach):
-                            k = group_end
-                            continue
-                    j = k
-                    if listed:
-                        j = det.prm_index[k]
-                    if within_box(det.prm_bounds, j, 0, p, reach):
-                        r = closest_on_primitive(det.prm, j, p)
-                        if r[0] < best[0]:
-                            best = r
-                    k += 1
+            # grid's margin (grow bounds reach), p's cell (see primitive_grid) lists all
+            # primitives that may be. Those tested are tested in order, so the nearest (ties: the
+            # first) is the one all of them would give. They are the primitives in turn from k to
+            # stop: the obstacle's, a group skipped at its first where its box is beyond reach;
+            # or, listed, those of p's cell (one loop: the closest-point code is compiled once).
+            k, stop, listed = det.prm_index[o], det.prm_index[o + 1], grow * (1.0 + 1e-9) <= det.bounds[o, 12]
+            if listed:
+                ijk = ti.cast(ti.floor((p - vector_at(det.bounds, o, 4)) / det.bounds[o, 7]), ti.i32)
+                dims = ti.cast(vector_at(det.bounds, o, 8), ti.i32)
+                k, stop = 0, 0
+                if 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
+                    cid = ti.cast(det.bounds[o, 11], ti.i32) + (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
+                    k, stop = det.prm_index[cid], det.prm_index[cid + 1]
+            moved = ti.Vector([0.0, 0.0, 0.0])        # (nothing to test: no hit, whatever the motion)
+            if k < stop:
+                moved = R.transpose() @ (h * sample_point(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+                reach = alarm + moved.norm()
+                if listed or within_ball(det.bounds, o, p, reach):
+                    group_end = k
+                    while k < stop:
+                        if not listed and k == group_end:
+                            group_end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                            if not within_box(det.prm_bounds, k, 6, p, reach):
+                                k = group_end
+                                continue
+                        j = k
+                        if listed:
+                            j = det.prm_index[k]
+                        if within_box(det.prm_bounds, j, 0, p, reach):
+                            r = closest_on_primitive(det.prm, j, p)
+                            if r[0] < best[0]:
+                                best = r
+                        k += 1
             # Within `alarm` at the free position, or at the step's start (the gap less the free
             # motion along the normal): see the module docstring.
             start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
