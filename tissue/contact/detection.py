@@ -6,7 +6,8 @@ What a contact point and a contact are: tissue.contact.contacts.
   soft–rigid  one thread per sample, for each obstacle the nearest of its primitives in the
               obstacle's frame, skipping the obstacle whose bounding ball, and the primitives
               whose bounding box, or their group's (a run of touching primitives: a rib), is
-              beyond the alarm distance; triangle-mesh
+              beyond the alarm distance; an obstacle of many primitives also keeps a grid of them
+              in its frame, whose cell lists those a sample near it may reach; triangle-mesh
               obstacles are queried on the host with open3d (closest point, and inside/outside
               by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
