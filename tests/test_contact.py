@@ -96,12 +96,13 @@ def test_primitive_distances_match_closed_forms(backend):
 
 
 def test_culled_primitives_give_the_nearest_within_alarm(backend):
-    """The primitives' boxes and their groups' boxes (a rib's pieces) skip only what is beyond the
-    alarm distance: every point finds the nearest of 20 rib capsules and a sphere, as a search
-    over all of them does."""
+    """The primitives' boxes and their groups' boxes (a rib's pieces), and the obstacle's grid of
+    primitives, skip only what is beyond the alarm distance: every point finds the nearest of 20
+    rib capsules and a sphere, as a search over all of them does, at an alarm distance within the
+    grid's margin (the grid's cells) and one beyond it (the groups)."""
     from scenes.liver_press import rib_segments
     from tissue.contact.detection import Detector
-    from tissue.contact.geometry import primitive_bounds
+    from tissue.contact.geometry import primitive_bounds, primitive_grid
     from tissue.contact.obstacles import Capsule, RigidObstacle, Sphere
 
     ends = np.array(rib_segments()).reshape(-1, 2, 3)
@@ -119,11 +120,13 @@ def test_culled_primitives_give_the_nearest_within_alarm(backend):
     rng = np.random.default_rng(1)
     p = rng.uniform([-0.15, -0.08, -0.03], [0.0, 0.11, 0.06], (3000, 3))
     faces = np.arange(len(p)).reshape(-1, 3)
-    alarm = 0.004
-    c = Detector([faces], [ribs], soft_soft=False).detect([p], alarm)
     nearest = gaps(p).min(axis=1)
-    np.testing.assert_array_equal(np.sort(c.vertex), np.flatnonzero(nearest <= alarm))
-    np.testing.assert_allclose(c.gap, nearest[c.vertex], atol=1e-12)
+    margin = primitive_grid(ribs.bounding_boxes(), 0, 0)[0][8]
+    for alarm in (0.004, 1.5 * margin):
+        assert (alarm <= margin) == (alarm == 0.004)
+        c = Detector([faces], [ribs], soft_soft=False).detect([p], alarm)
+        np.testing.assert_array_equal(np.sort(c.vertex), np.flatnonzero(nearest <= alarm))
+        np.testing.assert_allclose(c.gap, nearest[c.vertex], atol=1e-12)
 
 
 def test_rigid_contact_within_alarm_at_the_step_start_is_found(backend):
@@ -320,6 +323,60 @@ def test_soft_soft_detection_matches_brute_force(backend):
     inside = (xa[c.vertex[mine], 2] < -1e-9) & (np.abs(xa[c.vertex[mine], :2]).max(axis=1) < 0.05)
     assert np.all(c.gap[mine][inside] < 0) and inside.any()
     np.testing.assert_allclose(c.normal[mine][inside], np.tile([0, 0, 1.0], (inside.sum(), 1)), atol=1e-12)
+
+
+def distances_to_triangles(points, triangles):
+    """(S, F) distances from each point to each triangle (F, 3, 3), all pairs in numpy: the
+    nearest of the point's projection onto the plane (when inside) and the three edges."""
+    a, b, c = (triangles[None, :, i] for i in range(3))
+    p = points[:, None]
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    q = p - np.einsum("sfi,sfi->sf", p - a, n)[..., None] * n
+    inside = np.all([np.einsum("sfi,sfi->sf", np.cross(v - u, q - u), n) >= 0 for u, v in ((a, b), (b, c), (c, a))],
+                    axis=0)
+    best = np.where(inside, np.linalg.norm(p - q, axis=-1), np.inf)
+    for u, v in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.einsum("sfi,sfi->sf", p - u, v - u) / np.einsum("sfi,sfi->sf", v - u, v - u), 0, 1)
+        best = np.minimum(best, np.linalg.norm(p - (u + t[..., None] * (v - u)), axis=-1))
+    return best
+
+
+def test_kept_soft_grid_finds_every_contact_of_a_deforming_surface(backend):
+    """The soft–soft grids kept between calls while the surfaces move within their skin: a box
+    sunk into another's rippling top and sliding over it, by less than the skin per call and by
+    several grid cells over the calls, is detected as brute force (all pairs) finds it, and bit
+    for bit as a fresh Detector (whose grids are built for the call) does. Kept grids and rebuilt
+    ones are both exercised."""
+    from tissue.contact.detection import GRID_SKIN, Detector
+    from tissue.mesh import boundary_faces, box
+
+    B = box((0.1, 0.1, 0.05), (10, 10, 2), origin=(-0.05, -0.05, -0.05))
+    A = box((0.04, 0.04, 0.02), (6, 6, 2), origin=(-0.03, -0.03, 0.0005))
+    faces, alarm = [boundary_faces(A.tets), boundary_faces(B.tets)], 3e-3
+    kept, rebuilt, hits = Detector(faces), [], 0
+    top = B.points[:, 2] > -1e-9
+    for call in range(24):
+        step = 0.9 * GRID_SKIN * alarm * call        # per call less than the skin
+        xa = A.points + [step, 0.5 * step, 0.0]
+        xb = B.points.copy()
+        xb[top, 2] += 1e-3 * np.sin(40 * xb[top, 0] + 0.5 * call)
+        positions = [xa, xb]
+        c, fresh = kept.detect(positions, alarm), Detector(faces).detect(positions, alarm)
+        rebuilt.append([int(body.grid_i.to_numpy()[6]) for body in kept._bodies])
+        for name in ("body", "sample", "other", "triangle", "weights", "normal", "gap", "closest"):
+            np.testing.assert_array_equal(getattr(c, name), getattr(fresh, name), err_msg=f"call {call}: {name}")
+        for body in (0, 1):
+            mine = c.body == body
+            d = distances_to_triangles(positions[body][np.unique(faces[body])], positions[1 - body][faces[1 - body]])
+            nearest = d.min(axis=1)
+            found = np.zeros(len(nearest), bool)
+            found[c.sample[mine]] = True
+            assert np.all(found[nearest < alarm - 1e-9]) and not np.any(found[nearest > alarm + 1e-9]), call
+            np.testing.assert_allclose(np.abs(c.gap[mine]), nearest[c.sample[mine]], atol=1e-12)
+            hits += mine.sum()
+    rebuilt = np.array(rebuilt[1:])
+    assert 0 < rebuilt.sum() < rebuilt.size and hits > 100, (rebuilt, hits)
 
 
 def test_soft_detection_replays_by_identity(backend, monkeypatch):

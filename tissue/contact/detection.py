@@ -6,17 +6,20 @@ What a contact point and a contact are: tissue.contact.contacts.
   soft–rigid  one thread per sample, for each obstacle the nearest of its primitives in the
               obstacle's frame, skipping the obstacle whose bounding ball, and the primitives
               whose bounding box, or their group's (a run of touching primitives: a rib), is
-              beyond the alarm distance; triangle-mesh
+              beyond the alarm distance; an obstacle of many primitives also keeps a grid of them
+              in its frame, whose cell lists those a sample near it may reach; triangle-mesh
               obstacles are queried on the host with open3d (closest point, and inside/outside
               by ray parity).
   soft–soft   broad phase: the other body's surface triangles, their boxes grown by the alarm
-              distance, binned in a uniform grid built on the device each step (box, counting
-              sort); narrow phase: one thread per sample, exact point–triangle distance to the
-              triangles of its cell (Ericson's Voronoi-region test), ties to the lowest triangle
-              id. Inside/outside is the sign of (p - c) against the interpolated area-weighted
-              vertex normal at c, which stays right at edges and corners where a face normal can
-              point either way. Both directions are detected (samples of A against triangles of
-              B and of B against A).
+              distance and a skin, binned in a uniform grid built on the device (box, counting
+              sort) and kept, Verlet-style, until a surface node has moved by more than the skin
+              (`_detect_soft` says why the hits are the same); narrow phase: one thread per
+              sample, exact point–triangle distance to the triangles of its cell whose box is
+              within the alarm distance (Ericson's Voronoi-region test), ties to the lowest
+              triangle id. Inside/outside is the sign of (p - c) against the interpolated
+              area-weighted vertex normal at c, which stays right at edges and corners where a
+              face normal can point either way. Both directions are detected (samples of A
+              against triangles of B and of B against A).
 
 For one body this is a kernel launch against the obstacles (`_detect_rigid`) and one against each
 other soft body (`_detect_soft`), writing into a buffer kept between calls (`HitBuffer`,
@@ -45,13 +48,15 @@ import taichi as ti
 from .. import backend
 from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
-from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, sample_point, within_ball,
-                       within_box)
 from .constraints import offsets
+from .geometry import (cell_range, closest_on_primitive, closest_on_triangle, primitive_bounds, primitive_grid,
+                       sample_point, vector_at, within_ball, within_box, within_corners)
 from .hits import HitBuffer
 from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
+GRID_SKIN = 0.5     # the soft–soft grid is kept while the surface moves less than this times the alarm distance
+ROOM = 1e-5         # of the alarm distance: room for rounding in the soft–soft pruning (float32's too)
 SERIAL_BELOW_POINTS = 30_000      # contact points: below, the CPU runs the detection loops on one thread
 
 
@@ -61,12 +66,13 @@ def _serial(samples) -> bool:
     return backend.current().arch == "cpu" and sum(len(nodes) for nodes, _ in samples) < SERIAL_BELOW_POINTS
 
 
-# The arrays of a detection launch, in one flat argpack: body A's positions, samples and (for
-# the start of the step) velocities, and the obstacles' primitives and their bounds (RIGID:
-# what the obstacles' launch reads; the launcher costs per ndarray, replayed or not); the soft
-# launch's adds body B's positions, surface, vertex normals and triangle grid.
-RIGID_MEMBERS = ("xa", "nodes", "weights", "va", "prm", "prm_offsets", "prm_bounds", "bounds")
-SOFT_MEMBERS = (*RIGID_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "normals", "start", "cursor", "ids",
+# The arrays of a detection launch, in one flat argpack holding only what it reads (the launcher
+# costs per ndarray, replayed or not): body A's positions, samples and (for the start of the step)
+# velocities (OWN), then the obstacles' primitives and their bounds (RIGID), or body B's
+# positions, surface, faces around each node and triangle grid (SOFT).
+OWN_MEMBERS = ("xa", "nodes", "weights", "va")
+RIGID_MEMBERS = (*OWN_MEMBERS, "prm", "prm_index", "prm_bounds", "bounds")
+SOFT_MEMBERS = (*OWN_MEMBERS, "xb", "faces", "surface", "vf_offsets", "vf", "reference", "start", "cursor", "ids",
                 "grid_i", "grid_f")
 DETECT_RIGID = ti.types.argpack(**{name: ti.types.ndarray() for name in RIGID_MEMBERS})
 DETECT = ti.types.argpack(**{name: ti.types.ndarray() for name in SOFT_MEMBERS})
@@ -103,7 +109,7 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
         # that may are tested there as they are, so the hits do not change.
         free = sample_point(det.xa, det.nodes, det.weights, s)
         grow = alarm + h * sample_point(det.va, det.nodes, det.weights, s).norm()
-        for o in range(det.prm_offsets.shape[0] - 1):     # (not ti.ndrange: it divides for its indices)
+        for o in range(det.bounds.shape[0]):     # (not ti.ndrange: it divides for its indices)
             d = free - ti.Vector([poses[o, 12], poses[o, 13], poses[o, 14]])
             bound = (poses[o, 15] + grow) * (1.0 + 1e-9)
             if poses[o, 15] >= 0.0 and d.dot(d) > bound * bound:
@@ -113,24 +119,43 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
                            [poses[o, 6], poses[o, 7], poses[o, 8]]])
             t = ti.Vector([poses[o, 9], poses[o, 10], poses[o, 11]])
             p = R.transpose() @ (sample_point(det.xa, det.nodes, det.weights, s) - t)
-            moved = R.transpose() @ (h * sample_point(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
-            reach = alarm + moved.norm()
             best = ti.Vector([1e300, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
             # Bounds farther than `reach` skip what they hold, which cannot be within it: the
             # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
-            # (see primitive_bounds) the group's, a primitive's box the primitive. Those tested are
-            # tested in order, so the nearest (ties: the first) is the one all of them would give.
-            if within_ball(det.bounds, o, p, reach):
-                k = det.prm_offsets[o]
-                while k < det.prm_offsets[o + 1]:
-                    end = ti.cast(det.prm_bounds[k, 12], ti.i32)
-                    if within_box(det.prm_bounds, k, 6, p, reach):
-                        for j in range(k, end):
-                            if within_box(det.prm_bounds, j, 0, p, reach):
-                                r = closest_on_primitive(det.prm, j, p)
-                                if r[0] < best[0]:
-                                    best = r
-                    k = end
+            # (see primitive_bounds) the group's, a primitive's box the primitive; within its
+            # grid's margin (grow bounds reach), p's cell (see primitive_grid) lists all
+            # primitives that may be. Those tested are tested in order, so the nearest (ties: the
+            # first) is the one all of them would give. They are the primitives in turn from k to
+            # stop: the obstacle's, a group skipped at its first where its box is beyond reach;
+            # or, listed, those of p's cell (one loop: the closest-point code is compiled once).
+            k, stop, listed = det.prm_index[o], det.prm_index[o + 1], grow * (1.0 + 1e-9) <= det.bounds[o, 12]
+            if listed:
+                ijk = ti.cast(ti.floor((p - vector_at(det.bounds, o, 4)) / det.bounds[o, 7]), ti.i32)
+                dims = ti.cast(vector_at(det.bounds, o, 8), ti.i32)
+                k, stop = 0, 0
+                if 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
+                    cid = ti.cast(det.bounds[o, 11], ti.i32) + (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
+                    k, stop = det.prm_index[cid], det.prm_index[cid + 1]
+            moved = ti.Vector([0.0, 0.0, 0.0])        # (nothing to test: no hit, whatever the motion)
+            if k < stop:
+                moved = R.transpose() @ (h * sample_point(det.va, det.nodes, det.weights, s))     # the free motion (0 without v)
+                reach = alarm + moved.norm()
+                if listed or within_ball(det.bounds, o, p, reach):
+                    group_end = k
+                    while k < stop:
+                        if not listed and k == group_end:
+                            group_end = ti.cast(det.prm_bounds[k, 12], ti.i32)
+                            if not within_box(det.prm_bounds, k, 6, p, reach):
+                                k = group_end
+                                continue
+                        j = k
+                        if listed:
+                            j = det.prm_index[k]
+                        if within_box(det.prm_bounds, j, 0, p, reach):
+                            r = closest_on_primitive(det.prm, j, p)
+                            if r[0] < best[0]:
+                                best = r
+                        k += 1
             # Within `alarm` at the free position, or at the step's start (the gap less the free
             # motion along the normal): see the module docstring.
             start_gap = best[0] - moved.dot(ti.Vector([best[1], best[2], best[3]]))
@@ -145,73 +170,98 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
                 out[s, o, 9] = -1.0
 
 
+@ti.func
+def _vertex_normal(det: ti.template(), node):
+    """Body B's area-weighted normal at a surface node: its faces' cross products summed in
+    ascending face id, normalised."""
+    nv = ti.Vector([0.0, 0.0, 0.0])
+    for m in range(det.vf_offsets[node], det.vf_offsets[node + 1]):
+        f = det.faces[det.vf[m]]
+        nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
+    return nv / ti.max(nv.norm(), 1e-300)
+
+
 @ti.kernel
 def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
-                 cell0: float, alarm: float, slot: ti.i32, h: float, copy_state: ti.i32, serial: ti.template()):
+                 cell0: float, alarm: float, margin: float, slot: ti.i32, h: float, copy_state: ti.i32,
+                 serial: ti.template()):
     """Body A's contact candidates on body B's surface, in one launch: B's triangle grid (box,
-    counting sort), B's vertex normals, then per sample the nearest triangle of its cell within
-    `alarm`. gap[s, slot]: its gap, 1e300 for none; a hit's out[s, slot] = [normal (3), closest
-    point (3), weights on B's triangle (3), triangle id]. copy_state: see _copy_state."""
+    counting sort) unless the one kept still holds, then per sample the nearest triangle of its
+    cell within `alarm`. gap[s, slot]: its gap, 1e300 for none; a hit's out[s, slot] = [normal
+    (3), closest point (3), weights on B's triangle (3), triangle id]. copy_state: see _copy_state.
+
+    The grid bins each triangle in the cells its box grown by `margin` (> alarm) meets, and keeps
+    B's surface positions it was built from (`reference`): while no surface node has moved by
+    more than margin − alarm along any axis since (less ROOM × alarm for rounding), each triangle
+    lies within its binned box shrunk by alarm, so a sample within alarm of it still lies in a
+    cell it is binned in, and the grid is kept (grid_i[5]: built whole; grid_i[6]: built at this
+    launch). The sample's nearest triangle is the same in any cell that holds it (ties: the lowest
+    id), so the hits do not depend on when the grid was built."""
     _copy_state(det, state, h, copy_state, serial)
     ns = det.nodes.shape[0]
     nf = det.faces.shape[0]
     ti.loop_config(serialize=serial)
-    for _ in range(1):                          # serial: the grid's box, cell size and dims
-        lo = ti.Vector([1e300, 1e300, 1e300])
-        hi = -lo
-        for k in range(det.surface.shape[0]):
-            p = det.xb[det.surface[k]]
-            lo, hi = ti.min(lo, p), ti.max(hi, p)
-        lo -= alarm
-        hi += alarm
-        cell = cell0
-        extent = (hi - lo) / cell
-        while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
-            cell *= 1.26
+    for _ in range(1):                          # serial: whether the grid holds; if not, its box, cell size and dims
+        holds = det.grid_i[5] == 1
+        slack = det.grid_f[4] - alarm * (1.0 + ROOM)    # the margin it was built with, beyond the alarm distance
+        m = 0
+        while holds and m < det.surface.shape[0]:
+            holds = (ti.abs(det.xb[det.surface[m]] - det.reference[m])).max() <= slack
+            m += 1
+        det.grid_i[6] = 0 if holds else 1
+        if not holds:
+            lo = ti.Vector([1e300, 1e300, 1e300])
+            hi = -lo
+            for k in range(det.surface.shape[0]):
+                p = det.xb[det.surface[k]]
+                det.reference[k] = p
+                lo, hi = ti.min(lo, p), ti.max(hi, p)
+            lo -= margin
+            hi += margin
+            cell = cell0
             extent = (hi - lo) / cell
-        dims = ti.cast(ti.floor(extent), ti.i32) + 1
-        for i in ti.static(range(3)):
-            det.grid_f[i] = lo[i]
-            det.grid_i[i] = dims[i]
-        det.grid_f[3] = cell
-        det.grid_i[3] = dims[0] * dims[1] * dims[2]
+            while (extent[0] + 1.0) * (extent[1] + 1.0) * (extent[2] + 1.0) > GRID_MAX_CELLS:
+                cell *= 1.26
+                extent = (hi - lo) / cell
+            dims = ti.cast(ti.floor(extent), ti.i32) + 1
+            for i in ti.static(range(3)):
+                det.grid_f[i] = lo[i]
+                det.grid_i[i] = dims[i]
+            det.grid_f[3] = cell
+            det.grid_f[4] = margin
+            det.grid_i[3] = dims[0] * dims[1] * dims[2]
     origin = ti.Vector([det.grid_f[0], det.grid_f[1], det.grid_f[2]])
     cell = det.grid_f[3]
     dims = ti.Vector([det.grid_i[0], det.grid_i[1], det.grid_i[2]])
     ti.loop_config(serialize=serial)
-    for c in range(det.grid_i[3] + 1):
+    for c in range((det.grid_i[3] + 1) * det.grid_i[6]):
         det.start[c] = 0
     ti.loop_config(serialize=serial)
-    for f in range(nf):                         # count the triangles of each cell
+    for f in range(nf * det.grid_i[6]):         # count the triangles of each cell
         a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-        i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+        i0, i1 = cell_range(ti.min(a, b, c) - margin, ti.max(a, b, c) + margin, origin, cell, dims)
         for i in range(i0[0], i1[0] + 1):       # (nested: an inner ti.ndrange divides for its indices)
             for j in range(i0[1], i1[1] + 1):
                 for k in range(i0[2], i1[2] + 1):
                     ti.atomic_add(det.start[(i * dims[1] + j) * dims[2] + k + 1], 1)
     ti.loop_config(serialize=serial)
     for _ in range(1):                          # serial prefix sum: start[c] .. start[c + 1]
-        for c in range(det.grid_i[3]):
-            det.start[c + 1] += det.start[c]
-            det.cursor[c] = det.start[c]
-        det.grid_i[4] = det.start[det.grid_i[3]]
+        if det.grid_i[6]:
+            for c in range(det.grid_i[3]):
+                det.start[c + 1] += det.start[c]
+                det.cursor[c] = det.start[c]
+            det.grid_i[4] = det.start[det.grid_i[3]]
+            det.grid_i[5] = 1 if det.grid_i[4] <= det.ids.shape[0] else 0
         gap[ns, slot] = ti.cast(det.grid_i[4], float)   # the host grows `ids` if it overflowed
     ti.loop_config(serialize=serial)
-    for f in range(nf):                         # fill (order within a cell: any; see below)
-        if det.grid_i[4] <= det.ids.shape[0]:
+    for f in range(nf * det.grid_i[6]):         # fill (order within a cell: any; see below)
+        if det.grid_i[5]:
             a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-            i0, i1 = cell_range(ti.min(a, b, c) - alarm, ti.max(a, b, c) + alarm, origin, cell, dims)
+            i0, i1 = cell_range(ti.min(a, b, c) - margin, ti.max(a, b, c) + margin, origin, cell, dims)
             for i in range(i0[0], i1[0] + 1):
                 for j in range(i0[1], i1[1] + 1):
                     for k in range(i0[2], i1[2] + 1):
                         det.ids[ti.atomic_add(det.cursor[(i * dims[1] + j) * dims[2] + k], 1)] = f
-    ti.loop_config(serialize=serial)
-    for k in range(det.surface.shape[0]):           # area-weighted vertex normals (a fixed order)
-        nv = ti.Vector([0.0, 0.0, 0.0])
-        for m in range(det.vf_offsets[k], det.vf_offsets[k + 1]):
-            f = det.faces[det.vf[m]]
-            nv += (det.xb[f[1]] - det.xb[f[0]]).cross(det.xb[f[2]] - det.xb[f[0]])
-        det.normals[det.surface[k]] = nv / ti.max(nv.norm(), 1e-300)
     ti.loop_config(serialize=serial)
     for s in range(ns):                         # narrow phase
         gap[s, slot] = 1e300
@@ -219,23 +269,28 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
         ijk = ti.cast(ti.floor((p - origin) / cell), ti.i32)
         best, best_face = 1e300, -1
         best_w, best_c = ti.Vector([0.0, 0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
-        if det.grid_i[4] <= det.ids.shape[0] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] \
-                and 0 <= ijk[2] < dims[2]:
+        if det.grid_i[5] and 0 <= ijk[0] < dims[0] and 0 <= ijk[1] < dims[1] and 0 <= ijk[2] < dims[2]:
             cid = (ijk[0] * dims[1] + ijk[1]) * dims[2] + ijk[2]
             for m in range(det.start[cid], det.start[cid + 1]):
                 f = det.ids[m]
                 a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
-                w = closest_on_triangle(p, a, b, c)
-                q = w[0] * a + w[1] * b + w[2] * c
-                d = (p - q).norm()
-                # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
-                # id, so the result does not depend on the order the cell was filled in.
-                if d < best or (d == best and f < best_face):
-                    best, best_face, best_w, best_c = d, f, w, q
+                # A triangle whose box is beyond the alarm distance (with room for rounding) is
+                # farther: it cannot be the nearest of a hit, and is not measured.
+                if within_corners(ti.min(a, b, c), ti.max(a, b, c), p, alarm * (1.0 + ROOM)):
+                    w = closest_on_triangle(p, a, b, c)
+                    q = w[0] * a + w[1] * b + w[2] * c
+                    d = (p - q).norm()
+                    # Ties (a point nearest to a shared edge or vertex) go to the lowest triangle
+                    # id, so the result does not depend on the order the cell was filled in.
+                    if d < best or (d == best and f < best_face):
+                        best, best_face, best_w, best_c = d, f, w, q
         if best_face >= 0 and best <= alarm:
             f = det.faces[best_face]
             a, b, c = det.xb[f[0]], det.xb[f[1]], det.xb[f[2]]
-            vn = best_w[0] * det.normals[f[0]] + best_w[1] * det.normals[f[1]] + best_w[2] * det.normals[f[2]]
+            vn = ti.Vector([0.0, 0.0, 0.0])
+            for i in range(3):                  # (not unrolled: the normal's code is compiled once)
+                corner = f[0] if i == 0 else (f[1] if i == 1 else f[2])
+                vn += (best_w[0] if i == 0 else (best_w[1] if i == 1 else best_w[2])) * _vertex_normal(det, corner)
             d = p - best_c
             n = (b - a).cross(c - a).normalized()
             g = 0.0
@@ -286,23 +341,24 @@ class _Surface:
         self.faces_np = faces
         self.n_samples = len(nodes)
         surface = np.unique(faces).astype(np.int32)
-        # Faces around each surface node (CSR, ascending face id), for the vertex normals.
-        corner_node = np.searchsorted(surface, faces.reshape(-1))
-        order = np.argsort(corner_node, kind="stable")
-        offsets = np.zeros(len(surface) + 1, np.int32)
-        np.cumsum(np.bincount(corner_node, minlength=len(surface)), out=offsets[1:])
+        # Faces around each node (CSR by node id, ascending face id), for the vertex normals.
+        self.n_nodes = n_nodes
+        corners = faces.reshape(-1)
+        offsets = np.zeros(max(n_nodes, int(corners.max(initial=-1)) + 1) + 1, np.int32)
+        np.cumsum(np.bincount(corners, minlength=len(offsets) - 1), out=offsets[1:])
         self.nodes, self.weights = _array(nodes, ti.i32, 3), _array(weights.astype(npr), real, 3)
         self.faces = _array(faces, ti.i32, 3)
         self.surface = _array(surface, ti.i32)
         self.vf_offsets = _array(offsets, ti.i32)
-        self.vf = _array((order // 3).astype(np.int32), ti.i32)
-        self.normals = ti.ndarray(ti.types.vector(3, real), max(n_nodes, 1))
-        # The grid of this body's triangles (built on the device at each detection).
+        self.vf = _array((np.argsort(corners, kind="stable") // 3).astype(np.int32), ti.i32)
+        # The grid of this body's triangles (built on the device when the one kept no longer
+        # holds: _detect_soft), and the surface positions it was built from.
         self.start = ti.ndarray(ti.i32, GRID_MAX_CELLS + 1)
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
-        self.grid_i, self.grid_f = ti.ndarray(ti.i32, 8), ti.ndarray(real, 4)
+        self.grid_i, self.grid_f = _array(np.zeros(8, np.int32), ti.i32), ti.ndarray(real, 5)
+        self.reference = ti.ndarray(ti.types.vector(3, real), max(len(surface), 1))
         self.cell = None                          # base cell size: set at the first detection
-        self.cell0 = None                         # cell + 2 alarm: the launch's cell0 (_run_soft)
+        self.cell0 = self.margin = None           # the launch's cell0 and margin (_run_soft)
         self.gap, self.out = gap, out             # its rows of the Detector's HitBuffer
 
 
@@ -349,17 +405,27 @@ class Detector:
         self.has_primitives = sum(counts) > 0
         offsets = np.r_[0, np.cumsum(counts)]
         self._prm = ti.ndarray(self.real, (max(1, sum(counts)), 16))
-        self._prm_offsets = _array(offsets.astype(np.int32), ti.i32)
         self._prm_bounds = ti.ndarray(self.real, (max(1, sum(counts)), 13))
-        self._bounds = ti.ndarray(self.real, (max(1, len(self.obstacles)), 4))
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
             self._prm_bounds.from_numpy(np.concatenate(
                 [primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
             ).astype(self._np))
         self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
-        if self.obstacles:
-            self._bounds.from_numpy(self._balls.astype(self._np))
+        # Per obstacle its ball and its grid (see primitive_grid; margin -1: none); the obstacles'
+        # first primitives, then their grids' cell starts and primitive ids.
+        bounds = np.zeros((max(1, len(self.obstacles)), 13))
+        bounds[:len(self.obstacles), :4], bounds[:, 12] = self._balls, -1.0
+        index = [offsets]
+        for o, obstacle in enumerate(self.obstacles):
+            grid = primitive_grid(obstacle.bounding_boxes(), offsets[o], sum(map(len, index)))
+            if grid is not None:
+                bounds[o, 4:], part = grid
+                index.append(part)
+        self._bounds = ti.ndarray(self.real, bounds.shape)
+        self._bounds.from_numpy(bounds.astype(self._np))
+        self._prm_index = _array(np.concatenate(index).astype(np.int32), ti.i32)
+        self._obstacle_arrays = (self._prm, self._prm_index, self._prm_bounds, self._bounds)   # RIGID_MEMBERS after OWN
         self._moving_ids = [j for j, o in enumerate(self.obstacles) if o.motion is not None]
         self._poses = np.zeros((max(1, len(self.obstacles)), 16), self._np)    # see _detect_rigid
         self._packed = (None,) * len(self.obstacles)     # the poses _poses holds
@@ -392,7 +458,7 @@ class Detector:
 
     def _setup(self, fields_):
         sizes = [f.shape[0] for f in fields_]
-        if self._bodies is None or [b.normals.shape[0] for b in self._bodies] != [max(n, 1) for n in sizes]:
+        if self._bodies is None or [b.n_nodes for b in self._bodies] != sizes:
             self._hits = HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
             self._bodies = [_Surface(f, s, n, gap, out, self.real, self._np)
                             for f, s, n, (gap, out) in zip(self.faces, self.samples, sizes, self._hits.outs)]
@@ -444,19 +510,19 @@ class Detector:
             return
         launches = [(body.others[0] if body.others else body.index, self.has_primitives, bool(body.others))]
         launches += [(b, False, True) for b in body.others[1:]]
-        own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v, self._prm,
-               self._prm_offsets, self._prm_bounds, self._bounds)                     # RIGID_MEMBERS
+        own = (body.x, surface.nodes, surface.weights, body.x if body.v is None else body.v)   # OWN_MEMBERS
         for k, (b, rigid, soft) in enumerate(launches):
             copy_state = int(body.v is not None and k == 0)
             if rigid:
-                _detect_rigid_replayed(self._pack((body.index, None), DETECT_RIGID, own), poses, surface.gap,
-                                       surface.out, body.state, body.alarm, body.dt, copy_state, self.serial)
+                pack = self._pack((body.index, None), DETECT_RIGID, (*own, *self._obstacle_arrays))
+                _detect_rigid_replayed(pack, poses, surface.gap, surface.out, body.state, body.alarm, body.dt,
+                                       copy_state, self.serial)
             if soft:
                 self._run_soft(body, own, b, fields_[b], 0 if rigid else copy_state)
 
     def _run_soft(self, body: _BodyDetection, own, b, xb, copy_state) -> None:
         """Body A's launch against body b's surface at positions xb (`own`: body A's arrays of the
-        launch, RIGID_MEMBERS)."""
+        launch, OWN_MEMBERS)."""
         other = self._bodies[b]
         if other.cell is None:                        # the median triangle extent, at the first call
             tri = xb.to_numpy().astype(np.float64)[other.faces_np]
@@ -464,14 +530,14 @@ class Detector:
         ids = self.storage.get(b, max(1024, 27 * len(other.faces_np)), ti.i32)
         slot = len(self.obstacles) + body.others.index(b)
         gap = body.surface.gap
-        cell0 = other.cell + 2 * body.alarm
-        if cell0 != other.cell0:        # else the same float object as before: the launch replays by identity
-            other.cell0 = cell0
+        margin = (1.0 + GRID_SKIN) * body.alarm
+        if margin != other.margin:      # else the same float objects as before: the launch replays by identity
+            other.margin, other.cell0 = margin, other.cell + 2 * margin
         while True:
             pack = self._pack((body.index, b), DETECT, (*own, xb, other.faces, other.surface, other.vf_offsets,
-                                                        other.vf, other.normals, other.start, other.cursor, ids,
+                                                        other.vf, other.reference, other.start, other.cursor, ids,
                                                         other.grid_i, other.grid_f))     # SOFT_MEMBERS
-            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell0, body.alarm,
+            _detect_soft_replayed(pack, gap, body.surface.out, body.state, other.cell0, body.alarm, other.margin,
                                   slot, body.dt, copy_state, self.serial)
             needed = int(gap[-1, slot])
             if needed <= ids.shape[0]:

@@ -1,7 +1,7 @@
 """The geometry the detection kernels ask (tissue.contact.detection): the contact point of a
 body's sample, closest points (on a primitive of an obstacle, on a triangle), the bounds that skip
-what lies beyond the alarm distance (an obstacle's ball, its primitives' boxes and their groups'),
-and the cells of the soft–soft triangle grid a box meets.
+what lies beyond the alarm distance (an obstacle's ball, its primitives' boxes and their groups',
+its grid of primitives), and the cells of the soft–soft triangle grid a box meets.
 
 The primitives are the packed rows of tissue.contact.obstacles, in the obstacle's frame; the
 bounds' rows are built on the host (`primitive_bounds`) and read in the kernels (`within_box`).
@@ -125,7 +125,13 @@ def within_ball(balls: ti.template(), k, p, reach):
 @ti.func
 def within_box(boxes: ti.template(), k, col, p, reach):
     """Whether p lies within `reach` of the box in row k's columns col..col+5 (low, high corner)."""
-    d = ti.max(vector_at(boxes, k, col) - p, p - vector_at(boxes, k, col + 3), 0.0)
+    return within_corners(vector_at(boxes, k, col), vector_at(boxes, k, col + 3), p, reach)
+
+
+@ti.func
+def within_corners(lo, hi, p, reach):
+    """Whether p lies within `reach` of the box with corners lo and hi."""
+    d = ti.max(lo - p, p - hi, 0.0)
     return d.dot(d) <= reach * reach
 
 
@@ -158,3 +164,45 @@ def primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
         rows[members, 9:12] = boxes[members, 3:].max(axis=0)
         rows[members, 12] = start + members[-1] + 1
     return rows
+
+
+GRID_MIN_PRIMITIVES = 8        # an obstacle with fewer primitives has no grid: its groups do as well
+GRID_MAX_CELLS = 1 << 15
+
+
+def primitive_grid(boxes: np.ndarray, first: int, at: int):
+    """An obstacle's primitives binned in a uniform grid of its frame, for the samples within its
+    margin of them (one cell: a fifth of the median primitive's box, or more where the grid
+    would exceed GRID_MAX_CELLS): each cell lists, in ascending order, the primitives whose box
+    grown by the margin (with room for rounding) meets it, so a sample's cell holds every primitive
+    within the margin of it, and one outside the grid none.
+
+    Returns (meta, index): meta (9,) the grid's origin (3), cell size, dims (3), where its cell
+    starts begin in the index array and the margin; index its part of that array (beginning at
+    `at`): the cell starts (cells + 1, absolute) then the primitives' ids (global: the obstacle's
+    first is `first`). None for fewer than GRID_MIN_PRIMITIVES primitives or an unbounded one."""
+    if len(boxes) < GRID_MIN_PRIMITIVES or np.any(np.abs(boxes) >= 1e299):
+        return None
+    margin = float(np.median((boxes[:, 3:] - boxes[:, :3]).max(axis=1))) / 5
+    grown = margin * (1.0 + 1e-4)            # (room for rounding, float32's too)
+    lo, hi = boxes[:, :3] - grown, boxes[:, 3:] + grown
+    origin = lo.min(axis=0)
+    cell = margin
+    while np.prod(np.floor((hi.max(axis=0) - origin) / cell) + 1) > GRID_MAX_CELLS:
+        cell *= 1.26
+    dims = (np.floor((hi.max(axis=0) - origin) / cell) + 1).astype(np.int64)
+    first_cell = np.clip(np.floor((lo - origin) / cell).astype(np.int64), 0, dims - 1)
+    last_cell = np.clip(np.floor((hi - origin) / cell).astype(np.int64), 0, dims - 1)
+    cells, prims = [], []
+    for j, (a, b) in enumerate(zip(first_cell, last_cell)):
+        i, k, m = np.meshgrid(*(np.arange(a[d], b[d] + 1) for d in range(3)), indexing="ij")
+        cells.append(((i * dims[1] + k) * dims[2] + m).ravel())
+        prims.append(np.full(cells[-1].size, first + j))
+    cells, prims = np.concatenate(cells), np.concatenate(prims)
+    order = np.argsort(cells, kind="stable")              # (each cell's primitives stay ascending)
+    n_cells = int(np.prod(dims))
+    starts = np.zeros(n_cells + 1, np.int64)
+    np.cumsum(np.bincount(cells, minlength=n_cells), out=starts[1:])
+    index = np.concatenate([at + n_cells + 1 + starts, prims[order]]).astype(np.int32)
+    meta = np.r_[origin, cell, dims, at, margin]
+    return meta, index
