@@ -551,7 +551,8 @@ def _numpy_drop_fixed(contacts, fixed):
 @pytest.mark.parametrize("precision", [np.float64, np.float32])
 def test_hits_read_out_by_the_launch_equal_numpys(backend, precision):
     """Detection's read-out (HitBuffer.contacts: one launch), the stage's held-node filter and the
-    rows the row writer writes from the read-out's buffers equal numpy's (np.nonzero over the
+    rows the row writer writes from the read-out's buffers (and the numpy builders from the
+    record's arrays) equal numpy's (np.nonzero over the
     buffer, _drop_fixed's rule on the carrier nodes, the numpy builders) bit for bit, on random
     buffers of one to three bodies with soft–soft and rigid hits (one obstacle moving), held
     nodes, the room rows' counts left out, and more hits than the row writer's first room; hits on
@@ -628,6 +629,10 @@ def test_hits_read_out_by_the_launch_equal_numpys(backend, precision):
             frictionless = rng.random(len(contacts)) < 0.3
             rows, _ = writer.write(contacts, frictionless, states, offset.astype(np.int32))
             built = build_rows(expected, free, prev, frictionless=frictionless)
+            by_numpy = build_rows(contacts, free, prev, frictionless=frictionless)     # (on the record's views)
+            for name in ("block", "body", "node", "value", "q", "frames", "directions"):
+                a, e = getattr(by_numpy, name), getattr(built, name)
+                assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, read, name)
             for name in ("block", "body", "node", "value", "q", "frames", "directions"):
                 a, e = getattr(rows, name), getattr(built, name)
                 assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, read, name)

@@ -119,9 +119,10 @@ class HitBuffer:
         _read_hits_replayed(self.gap, self.array, self.body, self.sample, self.nodes, self.weights, self.other,
                             self.faces, self.face_offset, self.n_obstacles, out.ints, out.reals, out.keys, out.counts)
         k, same = out.counts.tolist()
-        ints, reals = out.ints[:k], out.reals[:k]
+        # The record's arrays: views of a copy of the hits' rows (one numpy call, not one a field)
+        ints, reals = out.ints[:k].copy(), out.reals[:k].copy()
         hits = self._identities(ints, reals, same)
-        point = reals[:, CLOSEST:CLOSEST + 3].copy()
+        point = reals[:, CLOSEST:CLOSEST + 3]
         # The material point of the obstacle now at `point` was, one step earlier, at
         # R0 R1ᵀ (point - t1) + t0.
         motion = np.zeros((k, 3))
@@ -133,21 +134,22 @@ class HitBuffer:
                     (R1, t1), (R0, t0) = poses[j], previous_poses[j]
                     p = point[sel]
                     motion[sel] = p - ((p - t1) @ R1 @ R0.T + t0)
-        out.contacts = Contacts(**hits, normal=reals[:, NORMAL:NORMAL + 3].copy(), gap=reals[:, GAP].copy(),
-                                closest=point, other_motion=motion)
+        out.contacts = Contacts(**hits, normal=reals[:, NORMAL:NORMAL + 3], gap=reals[:, GAP], closest=point,
+                                other_motion=motion)
         out.contacts.read_out = out
         return out.contacts
 
     def _identities(self, ints, reals, same: int) -> dict:
         """The Contacts fields body, sample, nodes, own_weights, other, soft, triangle and weights
-        of the hits read out: the last launch's arrays when `same` (the hits are on obstacles
+        of the hits read out (views of `ints` and `reals`, the hits' rows copied out of the
+        read-out's buffers): the last launch's arrays when `same` (the hits are on obstacles
         alone, in the same rows and slots as then: a body at rest; the arrays are never written
         after), so that the contact stage finds them the same at once."""
         if same and self.kept is not None:
             return dict(self.kept)
         soft = ints[:, SOFT] != 0
-        hits = dict(body=ints[:, BODY].copy(), sample=ints[:, SAMPLE].copy(), nodes=ints[:, NODES:NODES + 3].copy(),
-                    own_weights=reals[:, OWN_WEIGHTS:OWN_WEIGHTS + 3].copy(), other=ints[:, OTHER].copy(), soft=soft,
-                    triangle=ints[:, TRIANGLE:TRIANGLE + 3].copy(), weights=reals[:, WEIGHTS:WEIGHTS + 3].copy())
+        hits = dict(body=ints[:, BODY], sample=ints[:, SAMPLE], nodes=ints[:, NODES:NODES + 3],
+                    own_weights=reals[:, OWN_WEIGHTS:OWN_WEIGHTS + 3], other=ints[:, OTHER], soft=soft,
+                    triangle=ints[:, TRIANGLE:TRIANGLE + 3], weights=reals[:, WEIGHTS:WEIGHTS + 3])
         self.kept = None if soft.any() else hits
         return dict(hits)
