@@ -568,6 +568,133 @@ def test_rows_written_by_the_launch_equal_the_numpy_builders(backend):
                                           expected.body_matrix(b, sizes[b]).toarray())
 
 
+def _numpy_read_out(hits, poses, previous_poses, moving):
+    """The hits of a HitBuffer as Contacts, read by numpy (np.nonzero over the buffer: the
+    read-out launch's reference)."""
+    from tissue.contact.contacts import Contacts
+
+    hit = hits.gap < 1e299
+    hit[np.r_[hits.body[1:] != hits.body[:-1], True]] = False          # each body's last row: its room
+    row, slot = np.divmod(hit.ravel().nonzero()[0], hits.gap.shape[1])
+    res = hits.array[row, slot].astype(np.float64)
+    soft = slot >= hits.n_obstacles
+    body = hits.body[row]
+    other = hits.other[body, slot]
+    triangle, weights = np.full((len(row), 3), -1, np.int32), np.zeros((len(row), 3))
+    triangle[soft] = hits.faces[hits.face_offset[other[soft]] + res[soft, 9].astype(np.int64)]
+    weights[soft] = res[soft, 6:9]
+    motion = np.zeros((len(row), 3))
+    for j in moving:
+        sel = slot == j
+        if sel.any():
+            (R1, t1), (R0, t0) = poses[j], previous_poses[j]
+            p = res[sel, 3:6]
+            motion[sel] = p - ((p - t1) @ R1 @ R0.T + t0)
+    return Contacts(body=body, sample=hits.sample[row], nodes=hits.nodes[row],
+                    own_weights=hits.weights[row].astype(np.float64), other=other, soft=soft, triangle=triangle,
+                    weights=weights, normal=res[:, :3], gap=hits.gap[row, slot].astype(np.float64),
+                    closest=res[:, 3:6], other_motion=motion)
+
+
+def _numpy_drop_fixed(contacts, fixed):
+    """ContactStage._drop_fixed's rule on the contacts' carrier nodes (fixed: per body a mask)."""
+    offset, fixed = np.r_[0, np.cumsum([len(f) for f in fixed])], np.concatenate(fixed)
+    stuck = (fixed[offset[contacts.body][:, None] + contacts.nodes] | (contacts.own_weights == 0)).all(axis=1)
+    soft = stuck & contacts.soft
+    stuck[soft] = fixed[offset[contacts.other[soft]][:, None] + contacts.triangle[soft]].all(axis=1)
+    return contacts.take(~stuck)
+
+
+@pytest.mark.parametrize("precision", [np.float64, np.float32])
+def test_hits_read_out_by_the_launch_equal_numpys(backend, precision):
+    """Detection's read-out (HitBuffer.contacts: one launch), the stage's held-node filter and the
+    rows the row writer writes from the read-out's buffers (and the numpy builders from the
+    record's arrays) equal numpy's (np.nonzero over the
+    buffer, _drop_fixed's rule on the carrier nodes, the numpy builders) bit for bit, on random
+    buffers of one to three bodies with soft–soft and rigid hits (one obstacle moving), held
+    nodes, the room rows' counts left out, and more hits than the row writer's first room; hits on
+    obstacles alone in the last read's rows and slots hand its arrays back; a hit more, or one on
+    another obstacle, new ones."""
+    from dataclasses import fields
+    from types import SimpleNamespace
+
+    from tissue.contact.constraints import build_rows, offsets
+    from tissue.contact.contacts import Contacts, surface_samples
+    from tissue.contact.hits import HitBuffer
+    from tissue.contact.pipeline import ContactStage
+    from tissue.contact.row_writer import RowWriter
+
+    def rotation(rng):
+        q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+        return q * np.sign(np.diag(r))
+
+    def same(a, b, what):
+        for f in fields(Contacts):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), (what, f.name)
+        assert a.keys().tobytes() == b.keys().tobytes(), (what, "keys")
+
+    rng, writer, dropped = np.random.default_rng(11), RowWriter(), 0
+    for trial in range(9):
+        n_bodies = 1 + trial % 3
+        sizes = [int(s) for s in rng.integers(30, 400, n_bodies)]
+        faces = [rng.integers(0, n, (int(rng.integers(8, 60)), 3)).astype(np.int32) for n in sizes]
+        samples = [surface_samples(f, ("vertices", "edges", "faces")[trial % 3]) for f in faces]
+        samples = [(nodes, weights.astype(precision)) for nodes, weights in samples]
+        hits = HitBuffer(samples, faces, 2, True, precision)
+        poses = [(rotation(rng), rng.standard_normal(3)) for _ in range(2)]
+        previous = [(rotation(rng), rng.standard_normal(3)), poses[1]]
+        for a, (gap, out) in enumerate(hits.outs):
+            n = len(gap) - 1
+            found = rng.random(gap.shape) < (0.5 if trial >= 6 else 0.15)
+            found[-1] = False
+            gap[found] = rng.normal(0, 1e-3, found.sum())
+            gap[-1, 2:] = 4321.0                          # a soft launch's room: not a hit
+            out[..., :6] = rng.standard_normal(out[..., :6].shape)
+            out[:, :2, 6:9], out[:, :2, 9] = 0.0, -1.0
+            for s in range(2, gap.shape[1]):
+                other = hits.other[a, s]
+                w = rng.dirichlet(np.ones(3), n) * (rng.random((n, 3)) < 0.8)
+                out[:n, s, 6:9], out[:n, s, 9] = w, rng.integers(0, len(faces[other]), n)
+        fixed = [rng.random(n) < 0.4 for n in sizes]
+        stage = SimpleNamespace(bodies=[SimpleNamespace(solver=SimpleNamespace(fem=SimpleNamespace(n_nodes=n),
+                                                                               fixed_nodes=np.flatnonzero(f)))
+                                        for n, f in zip(sizes, fixed)], detector=SimpleNamespace(samples=samples))
+        ContactStage._held_nodes(stage)
+        for read in range(4):
+            if read == 2:                                 # a hit more
+                row, slot = np.argwhere(hits.gap[:-1, :2] >= 1e299)[0]
+                hits.gap[row, slot] = 1e-4
+            if read == 3:                                 # a hit on the other obstacle instead
+                row = np.flatnonzero((hits.gap[:-1, 0] < 1e299) & (hits.gap[:-1, 1] >= 1e299))[0]
+                hits.gap[row, :2] = hits.gap[row, 1], hits.gap[row, 0]
+            contacts = hits.contacts(poses, previous, [1])
+            expected = _numpy_read_out(hits, poses, previous, [1])
+            same(contacts, expected, (trial, read))
+            if read == 1:                                 # the same hits: on obstacles alone, last read's arrays
+                assert (contacts.nodes is last.nodes) == (not contacts.soft.any()), trial
+            if read >= 2:
+                assert contacts.nodes is not last.nodes
+            last = contacts
+            kept = ContactStage._drop_fixed(stage, contacts)
+            same(kept, _numpy_drop_fixed(expected, fixed), (trial, read, "held"))
+            dropped += len(contacts) - len(kept)
+            offset = offsets(sizes)
+            states = rng.standard_normal((offset[-1], 6))
+            free = [states[a:b, :3] for a, b in zip(offset[:-1], offset[1:])]
+            prev = [states[a:b, 3:] for a, b in zip(offset[:-1], offset[1:])]
+            frictionless = rng.random(len(contacts)) < 0.3
+            rows, _ = writer.write(contacts, frictionless, states, offset.astype(np.int32))
+            built = build_rows(expected, free, prev, frictionless=frictionless)
+            by_numpy = build_rows(contacts, free, prev, frictionless=frictionless)     # (on the record's views)
+            for name in ("block", "body", "node", "value", "q", "frames", "directions"):
+                a, e = getattr(by_numpy, name), getattr(built, name)
+                assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, read, name)
+            for name in ("block", "body", "node", "value", "q", "frames", "directions"):
+                a, e = getattr(rows, name), getattr(built, name)
+                assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, read, name)
+    assert dropped
+
 # ----------------------------------------------------------------------------------------------
 # compliance: W and the correction against a direct computation
 # ----------------------------------------------------------------------------------------------

@@ -36,6 +36,9 @@ class Contacts:
     gap: np.ndarray             # (k,) signed distance along the normal (< 0: penetration)
     closest: np.ndarray         # (k, 3) the closest point c on the other surface
     other_motion: np.ndarray    # (k, 3) rigid: displacement of the material point at c over the step
+    # (not a field) where detection's read-out launch wrote these contacts (tissue.contact.hits.ReadOut):
+    # the row writer reads them there, and keys() their keys, while it holds them (until the next read-out)
+    read_out = None
 
     def __len__(self) -> int:
         return len(self.body)
@@ -57,6 +60,8 @@ class Contacts:
 
     def keys(self) -> np.ndarray:
         """An integer identity per contact (body, sample, kind, other), stable across steps."""
+        if self.read_out is not None and self.read_out.holds(self):
+            return self.read_out.keys[:len(self)].copy()
         return ((self.body.astype(np.int64) << 40) | (self.sample.astype(np.int64) << 12)
                 | (self.soft.astype(np.int64) << 11) | self.other.astype(np.int64))
 

@@ -19,7 +19,8 @@ directions, its compliance h A_hap⁻¹ I₃, its correction a translation); its
 the device's pose opens the stage.
 
 Kernel launches per step (warped): one detection launch per body (plus one per further body pair
-with three or more bodies), one for the rows and their JDS where they are built anew
+with three or more bodies), one reading its hits out (tissue.contact.hits), one for the rows and
+their JDS where they are built anew
 (tissue.contact.row_writer; without attachments or jaws), one for W's factors and one for the
 correction per touched body, one for the Gauss-Seidel; everything between them is a few dozen
 numpy operations on arrays of contacts.
@@ -231,7 +232,13 @@ class ContactStage:
         # Per-body node arrays side by side (body b's nodes from _offset[b]), for vectorised lookups.
         self._offset = np.r_[0, np.cumsum([len(f) for f in self._fixed])]
         self._fixed_all = np.concatenate(self._fixed)
-        self._any_fixed = bool(self._fixed_all.any())
+        # ... and per sample (body b's from _sample_offset[b]) whether it is carried by fixed nodes
+        # alone (weights 0 left out): the contacts _drop_fixed looks at
+        samples = self.detector.samples
+        self._sample_offset = offsets([len(nodes) for nodes, _ in samples])
+        self._held_samples = np.concatenate([(fixed[nodes] | (weights == 0)).all(axis=1)
+                                             for fixed, (nodes, weights) in zip(self._fixed, samples)])
+        self._any_fixed = bool(self._held_samples.any())
 
     def _follow_edits(self) -> None:
         """After topology edits (cutting): each edited body's contact surface is its model's
@@ -302,15 +309,16 @@ class ContactStage:
 
     def _drop_fixed(self, contacts: Contacts) -> Contacts:
         """Contacts that cannot move (a point on fixed nodes against a rigid or fixed triangle)
-        carry no row."""
+        carry no row. (contacts: detection's, whose points are their bodies' samples.)"""
         if not self._any_fixed or not len(contacts):
             return contacts
-        fixed = self._fixed_all
-        stuck = (fixed[self._offset[contacts.body][:, None] + contacts.nodes] | (contacts.own_weights == 0)).all(axis=1)
+        stuck = self._held_samples[self._sample_offset[contacts.body] + contacts.sample]
+        if not stuck.any():
+            return contacts
         soft = stuck & contacts.soft
         if soft.any():
             tri = self._offset[contacts.other[soft]][:, None] + contacts.triangle[soft]
-            stuck[soft] = fixed[tri].all(axis=1)
+            stuck[soft] = self._fixed_all[tri].all(axis=1)
         return contacts if not stuck.any() else contacts.take(~stuck)
 
     def _poses(self, time: float):

@@ -7,10 +7,12 @@ are few; `ContactStage._rows`). A launch costs a fixed few microseconds where th
 builders cost some forty calls of a few each (the pressed liver's 150 contacts), and nothing of
 a step's rows can be kept from the step before while the bodies move.
 
-The launch reads the contacts from two buffers filled by a handful of numpy copies (`ints`: body,
-other, soft, frictionless, the carrier nodes, the other triangle; `reals`: the weights on both,
-the normal, the gap, the obstacle's motion) and the bodies' free and start positions from the
-detection's state (all bodies in one array, tissue.contact.detection). It writes, in buffers kept
+The launch reads the contacts from two buffers (`ints`: body, other, soft, frictionless, the
+carrier nodes, the other triangle; `reals`: the weights on both, the normal, the gap, the
+obstacle's motion): those detection's read-out wrote them into (tissue.contact.hits: its columns
+are these, and more), or filled by a handful of numpy copies for contacts from elsewhere; and the
+bodies' free and start positions from the detection's state (all bodies in one array,
+tissue.contact.detection). It writes, in buffers kept
 by capacity: the entries (block row, body, node) and their 3×3 values, δ_free, the frames and row
 directions, and per body its JDS: [perm | count | jd_ptr | node | local | touched] (int32, as
 `JaggedDiagonal.packed`), the entries' values in the backend's float type and their block rows.
@@ -256,12 +258,17 @@ class RowWriter:
         args = self._arguments(k, state, state_offset)
         sizes, ints, reals = args[:3]
         sizes[0] = k
-        ints[:k, BODY], ints[:k, OTHER], ints[:k, SOFT], ints[:k, FRICTIONLESS] = \
-            contacts.body, contacts.other, contacts.soft, frictionless
-        ints[:k, NODES:NODES + 3], ints[:k, TRIANGLE:TRIANGLE + 3] = contacts.nodes, contacts.triangle
-        reals[:k, OWN_WEIGHTS:OWN_WEIGHTS + 3], reals[:k, WEIGHTS:WEIGHTS + 3] = contacts.own_weights, contacts.weights
-        reals[:k, NORMAL:NORMAL + 3], reals[:k, GAP], reals[:k, MOTION:MOTION + 3] = \
-            contacts.normal, contacts.gap, contacts.other_motion
+        read_out = contacts.read_out
+        if read_out is not None and read_out.holds(contacts):      # (its columns are ours: tissue.contact.hits)
+            ints, reals = read_out.ints, read_out.reals
+            args = (sizes, ints, reals, *args[3:])
+        else:
+            ints[:k, BODY], ints[:k, OTHER], ints[:k, SOFT] = contacts.body, contacts.other, contacts.soft
+            ints[:k, NODES:NODES + 3], ints[:k, TRIANGLE:TRIANGLE + 3] = contacts.nodes, contacts.triangle
+            reals[:k, OWN_WEIGHTS:OWN_WEIGHTS + 3] = contacts.own_weights
+            reals[:k, WEIGHTS:WEIGHTS + 3], reals[:k, NORMAL:NORMAL + 3], reals[:k, GAP] = \
+                contacts.weights, contacts.normal, contacts.gap
+        ints[:k, FRICTIONLESS], reals[:k, MOTION:MOTION + 3] = frictionless, contacts.other_motion
         _write_rows_replayed(*args)
         block, body, node, value, q, frames, directions, packed, jds_value, jds_row, counts = args[4:15]
         counts = counts.tolist()
