@@ -238,10 +238,10 @@ class FrictionalContactSolver:
         if n > self._room:
             q = st.get("q", m, real)
             room = self._room = q.shape[0] // 3
-            hist, gram = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
+            hist, gram, carried = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
             P = dict(q=q, mu=st.get("mu", room, real), r=st.get("r", 3 * room, real), u=st.get("u", 3 * room, real),
                      hist=st.get("hist", hist[0], real, hist[1:]), gram=st.get("gram", gram[0], real, gram[1:]),
-                     stats=st.get("stats", 3, real), sizes=st.get("sizes", 5, ti.i32), reals=st.get("reals", 1, real))
+                     carried=st.get("carried", carried, ti.i32), stats=st.get("stats", 3, real), sizes=st.get("sizes", 5, ti.i32), reals=st.get("reals", 1, real))
             self._P = st.pack("problem", PROBLEM, **P)
             self._q, self._r, self._u = P["q"], P["r"], P["u"]
             size = None

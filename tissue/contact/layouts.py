@@ -36,8 +36,8 @@ DELASSUS = ti.types.argpack(a=ti.types.ndarray(), b=ti.types.ndarray(), c=ti.typ
                             active=ti.types.ndarray(), dense=ti.types.ndarray(),
                             dims=ti.types.ndarray(), scale=ti.types.ndarray())
 PROBLEM = ti.types.argpack(q=ti.types.ndarray(), mu=ti.types.ndarray(), r=ti.types.ndarray(), u=ti.types.ndarray(),
-                           hist=ti.types.ndarray(), gram=ti.types.ndarray(), stats=ti.types.ndarray(),
-                           sizes=ti.types.ndarray(), reals=ti.types.ndarray())
+                           hist=ti.types.ndarray(), gram=ti.types.ndarray(), carried=ti.types.ndarray(),
+                           stats=ti.types.ndarray(), sizes=ti.types.ndarray(), reals=ti.types.ndarray())
 # W.dims (int): the factored layout's blocks, segments and room for contacts in play (gauss_seidel's
 # dense W among them: `active` holds each contact's slot there (n), the slots' contacts (room) and
 # their count; `dense` that W, 3 room × 3 room, then one contact's row of P Q, 3 × the dofs). P.sizes (int): contacts, Anderson's
