@@ -378,7 +378,8 @@ def test_factored_sweeps_in_play_match_dense(backend, monkeypatch, room):
     """The factored layout's sweeps that pass over the contacts apart read W formed among the
     contacts in play (up to IN_PLAY_MAX of them; beyond that room, or with none, y through the
     factors): the same sweeps as on the dense W built from the bodies, rounding aside, on a problem
-    where few contacts touch (17 come into play here: room for 16 runs out mid-solve)."""
+    where few contacts touch (17 come into play here: room for 16 runs out mid-solve). Those sweeps
+    visit the contacts in play in the order every sweep does (listed ascending after the slots')."""
     from tissue.contact import frictional_contact
     from tissue.contact.frictional_contact import FrictionalContactSolver
 
@@ -391,9 +392,12 @@ def test_factored_sweeps_in_play_match_dense(backend, monkeypatch, room):
     factored = FrictionalContactSolver(F, mu, "gauss_seidel", check=False)
     rf, info = factored.solve(q, tol, 5000)
     rd, idn = FrictionalContactSolver(W, mu, "gauss_seidel", check=False).solve(q, tol, 5000)
-    in_play = int(factored.storage._arrays["active"][n + min(n, room)]) if room else 0
+    active = factored.storage._arrays["active"]
+    in_play = int(active[n + min(n, room)]) if room else 0
     _report(f"factored, room {room} ({in_play} formed)", info, n)
     assert in_play == {64: 17, 16: 16, 0: 0}[room]
+    slots, ascending = active[n:n + in_play], active[n + min(n, room) + 1:][:in_play]
+    assert np.array_equal(ascending, np.sort(slots)) and len(set(slots)) == in_play
     assert info.iterations > 2 * 8                 # (sweeps over all contacts among them)
     assert info.converged and natural_map(W, q, mu, rf) <= tol
     assert abs(idn.iterations - info.iterations) <= 2

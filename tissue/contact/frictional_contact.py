@@ -272,7 +272,7 @@ class FrictionalContactSolver:
             dofs = max(1, int(W.y_offset[-1]))
             y, z = (st.get(name, dofs, real) for name in ("y", "z"))
             room = min(n, IN_PLAY_MAX)
-            active = st.get("active", n + room + 1, ti.i32)
+            active = st.get("active", n + 2 * room + 1, ti.i32)
             dense = st.get("dense", 9 * room * room + 3 * dofs, real)
             dims, scale = [len(W.blocks), len(W.y_offset) - 1, room], float(W.scale)
         if (self.layout, dims, scale) != kept_W:
@@ -359,7 +359,7 @@ class FrictionalContactSolver:
         if not (self.layout == FACTORED and self._swept and self.storage.host):
             return None
         room = min(self.n, IN_PLAY_MAX)
-        slot = self.storage.get("active", self.n + room + 1, ti.i32)[:self.n]
+        slot = self.storage.get("active", self.n + 2 * room + 1, ti.i32)[:self.n]
         a, b = slot[rows], slot[cols]
         if room == 0 or (a < 0).any() or (b < 0).any():
             return None

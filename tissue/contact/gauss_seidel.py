@@ -28,7 +28,7 @@ import taichi as ti
 from .cone import contact_error2, local_solve, matrix_at, project_contact, vector_at
 from ..launch import replayed
 from .layouts import (CONTACTS, DELASSUS, FACTORED, HORIZON, MAX_SWEEPS, PROBLEM, ROOM, STALL, TOL2, WINDOW, _gather_play,
-                      _play_offsets, _refresh, _residual, _spread, _wr, _wr_play)
+                      _play_ascending, _play_offsets, _refresh, _residual, _spread, _wr, _wr_play)
 
 ANDERSON_RESTARTS = 10    # rejecting a combination that starts worse than the sweep before, at most this often
 REVISIT_EVERY = 8         # every this many sweeps, one that visits the contacts apart too
@@ -218,6 +218,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
     stale, play = 0, 0          # FACTORED: y behind r; W among the contacts in play still kept
+    scan = 1                    # FACTORED: contacts may have come into play since W among them was formed
     # (y is first made by the residual at sweep 0, inside the loop: refreshed out here, at the
     # kernel's top level, its loops would each be a parallel task, a dispatch to the thread pool.)
     while True:
@@ -233,7 +234,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
         at_phase = stall > 0 and it % stall == 0
         if it == 0 or est <= tol2 or it >= max_it or at_phase:
             err2 = _residual(layout, W, P, n)
-            stale = 0
+            stale, scan = 0, 1
             if err2 <= tol2 or it >= max_it:
                 break
             if at_phase:
@@ -254,14 +255,29 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             # room), a few hundred multiply-adds each, not y kept through every dof of their
             # nodes (the pressed liver: ~15 of ~110 contacts in play, ~140 dofs). The same sweep,
             # rounding aside; the others, and every residual, read y.
+            # Only a residual or a sweep over every contact can bring others into play: after a
+            # sweep over those in play, with Anderson's steps among them, the next needs no search.
             if play and not revisit:
-                formed = _gather_play(W, P, n)
+                formed = 1
+                if scan:
+                    formed = _gather_play(W, P, n)
                 play = formed
+            scan = 1 - formed
             if not formed and stale:
                 _refresh(layout, W, P.r, n)
                 stale = 0
         est = 0.0
-        for i in range(n):
+        visits = n
+        if ti.static(layout == FACTORED):
+            if formed:
+                _, o_count, _ = _play_offsets(W, n)
+                visits = W.active[o_count]
+        for k in range(visits):
+            # (formed: those in play alone, in ascending order, which the test below would visit)
+            i = k
+            if ti.static(layout == FACTORED):
+                if formed:
+                    i = W.active[_play_ascending(W, n) + k]
             # Contact i solved with the others fixed; est gathers the error the old r_i had (a
             # cheap running estimate of the residual). A contact that carries nothing and was
             # apart (u_n > 0) when last seen is passed over until the next residual check, which
