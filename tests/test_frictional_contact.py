@@ -323,6 +323,39 @@ def two_body_factored_problem(nc, nnodes, rng, h=0.04):
     return W / scale, F.scaled(1 / scale), q, mu
 
 
+@pytest.mark.parametrize("mu", [0.0, 0.4])
+def test_anderson_over_the_contacts_that_carry_reactions(solve, mu):
+    """Anderson's history is kept for the contacts that have carried a reaction in the launch alone
+    (listed in the problem's `carried`, in order): on a factored two-body problem where most
+    contacts separate, warm-started on a few and reaching the others' reactions sweep by sweep,
+    the solution is the plain sweeps' and, frictionless, the QP's (scipy, independent), to the
+    tolerance; the list holds, once each and ascending, every contact that ends with a reaction."""
+    from tissue.contact import FrictionalContactSolver
+
+    rng = np.random.default_rng(8)
+    W, F, q, _ = two_body_factored_problem(80, 50, rng)
+    q[0::3] = np.where(rng.random(80) < 0.25, -rng.random(80), 0.2 + rng.random(80))   # most apart
+    r0 = np.zeros(240)
+    r0[0:15:3] = 0.1                                        # a warm start on five contacts
+    fast = FrictionalContactSolver(F, mu, "gauss_seidel", check=False)
+    r, info = fast.solve(q, 1e-11, 20000, r0=r0)
+    plain, info_p = solve(W, q, mu, tol=1e-11, max_iterations=20000, r0=r0, anderson=0)
+    assert info.converged and info_p.converged and natural_map(W, q, mu, r) <= 1e-11
+    np.testing.assert_allclose(r, plain, atol=1e-8 * np.abs(plain).max())
+    carried = fast.storage.get("carried", 1, None)
+    room = (len(carried) - 1) // 2
+    listed = carried[room:room + carried[2 * room]]
+    pushed = np.flatnonzero(r.reshape(-1, 3).any(axis=1))
+    assert np.all(np.diff(listed) > 0) and np.isin(pushed, listed).all() and len(listed) < 80
+    assert np.array_equal(np.flatnonzero(carried[:80]), listed)
+    if mu == 0:
+        Wn, qn = W[0::3, 0::3], q[0::3]
+        qp = scipy.optimize.minimize(lambda x: (0.5 * x @ Wn @ x + qn @ x, Wn @ x + qn), np.zeros(80), jac=True,
+                                     method="L-BFGS-B", bounds=[(0, None)] * 80,
+                                     options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000})
+        np.testing.assert_allclose(r[0::3], qp.x, atol=1e-6 * np.abs(qp.x).max())
+
+
 @pytest.mark.parametrize("method", ["gauss_seidel", "jacobi"])
 def test_factored_delassus_matches_dense(solve, method):
     """The factored layout (W = Σ P Q Pᵀ, never formed) against the dense W built here from the
@@ -345,7 +378,8 @@ def test_factored_sweeps_in_play_match_dense(backend, monkeypatch, room):
     """The factored layout's sweeps that pass over the contacts apart read W formed among the
     contacts in play (up to IN_PLAY_MAX of them; beyond that room, or with none, y through the
     factors): the same sweeps as on the dense W built from the bodies, rounding aside, on a problem
-    where few contacts touch (17 come into play here: room for 16 runs out mid-solve)."""
+    where few contacts touch (17 come into play here: room for 16 runs out mid-solve). Those sweeps
+    visit the contacts in play in the order every sweep does (listed ascending after the slots')."""
     from tissue.contact import frictional_contact
     from tissue.contact.frictional_contact import FrictionalContactSolver
 
@@ -358,9 +392,12 @@ def test_factored_sweeps_in_play_match_dense(backend, monkeypatch, room):
     factored = FrictionalContactSolver(F, mu, "gauss_seidel", check=False)
     rf, info = factored.solve(q, tol, 5000)
     rd, idn = FrictionalContactSolver(W, mu, "gauss_seidel", check=False).solve(q, tol, 5000)
-    in_play = int(factored.storage._arrays["active"][n + min(n, room)]) if room else 0
+    active = factored.storage._arrays["active"]
+    in_play = int(active[n + min(n, room)]) if room else 0
     _report(f"factored, room {room} ({in_play} formed)", info, n)
     assert in_play == {64: 17, 16: 16, 0: 0}[room]
+    slots, ascending = active[n:n + in_play], active[n + min(n, room) + 1:][:in_play]
+    assert np.array_equal(ascending, np.sort(slots)) and len(set(slots)) == in_play
     assert info.iterations > 2 * 8                 # (sweeps over all contacts among them)
     assert info.converged and natural_map(W, q, mu, rf) <= tol
     assert abs(idn.iterations - info.iterations) <= 2

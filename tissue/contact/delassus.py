@@ -45,9 +45,11 @@ class FactoredDelassus:
     def shape(self) -> tuple[int, int]:
         return (3 * self.n, 3 * self.n)
 
-    def scaled(self, factor: float) -> "FactoredDelassus":
-        """factor W, sharing the factors."""
-        return replace(self, scale=self.scale * factor, diagonal=self.diagonal * factor)
+    def scaled(self, factor: float, diagonal: np.ndarray | None = None) -> "FactoredDelassus":
+        """factor W, sharing the factors (its diagonal blocks `diagonal` before the factor, where
+        given: W's own with changes of the caller's)."""
+        diagonal = self.diagonal if diagonal is None else diagonal
+        return replace(self, scale=self.scale * factor, diagonal=diagonal * factor)
 
     def packed(self) -> np.ndarray:
         """[ptr | col | segment | y_offset | q_offset], int32: the kernels' index argument."""

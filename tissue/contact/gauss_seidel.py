@@ -28,107 +28,164 @@ import taichi as ti
 from .cone import contact_error2, local_solve, matrix_at, project_contact, vector_at
 from ..launch import replayed
 from .layouts import (CONTACTS, DELASSUS, FACTORED, HORIZON, MAX_SWEEPS, PROBLEM, ROOM, STALL, TOL2, WINDOW, _gather_play,
-                      _play_offsets, _refresh, _residual, _spread, _wr, _wr_play)
+                      _play_ascending, _play_offsets, _refresh, _residual, _spread, _wr, _wr_play)
 
 ANDERSON_RESTARTS = 10    # rejecting a combination that starts worse than the sweep before, at most this often
 REVISIT_EVERY = 8         # every this many sweeps, one that visits the contacts apart too
 
 
-def history_shape(window: int, rows: int) -> tuple[tuple, tuple]:
-    """The shapes of PROBLEM's hist and gram for Anderson's window and room for `rows` rows (0:
-    plain sweeps, one element)."""
-    return ((2 * window + 3, rows), (window, 2 * window + 2)) if window else ((1, 1), (1, 1))
+def history_shape(window: int, rows: int) -> tuple[tuple, tuple, int]:
+    """The shapes of PROBLEM's hist and gram and the length of its `carried` for Anderson's window
+    and room for `rows` rows (0: plain sweeps, one element each)."""
+    return ((2 * window + 3, rows), (window, 2 * window + 2), 2 * (rows // 3) + 1) if window else ((1, 1), (1, 1), 1)
+
+
+# Anderson's steps read and write the history of the contacts that have carried a reaction in this
+# launch alone (the pressed liver: ~15-20 of ~150): the others' entries would all be zero. P.carried
+# holds a mark per contact, then the marked contacts in ascending order, then their count; a
+# contact joins when a sweep first gives it a reaction, its history zeroed then.
+
+@ti.func
+def _carried_offsets(P: ti.template()):
+    """Where P.carried lists the contacts and where it counts them."""
+    room = (P.carried.shape[0] - 1) // 2
+    return room, 2 * room
 
 
 @ti.func
-def _save(r: ti.template(), hist: ti.template(), row, on, n3):
+def _carry_from_start(P: ti.template(), n):
+    """The contacts with r ≠ 0 at the launch's start, marked and listed."""
+    o_list, o_count = _carried_offsets(P)
+    count = 0
+    for i in range(n):
+        P.carried[i] = 0
+        if vector_at(P.r, i).norm_sqr() != 0.0:
+            P.carried[i] = 1
+            P.carried[o_list + count] = i
+            count += 1
+    P.carried[o_count] = count
+
+
+@ti.func
+def _carry(P: ti.template(), m, i):
+    """Contact i, given a reaction by a sweep, into the list (in order) with its history zeroed
+    (what its reactions of zero made it), unless it is there."""
+    if P.carried[i] == 0:
+        o_list, o_count = _carried_offsets(P)
+        P.carried[i] = 1
+        t = P.carried[o_count]
+        while t > 0 and P.carried[o_list + t - 1] > i:
+            P.carried[o_list + t] = P.carried[o_list + t - 1]
+            t -= 1
+        P.carried[o_list + t] = i
+        P.carried[o_count] += 1
+        for row in range(2 * m + 3):
+            for a in ti.static(range(3)):
+                P.hist[row, 3 * i + a] = 0.0
+
+
+@ti.func
+def _save(P: ti.template(), m, on):
     if on > 0:
-        for l in range(n3):
-            hist[row, l] = r[l]
+        o_list, o_count = _carried_offsets(P)
+        for t in range(P.carried[o_count]):
+            i = P.carried[o_list + t]
+            for a in ti.static(range(3)):
+                P.hist[2 * m + 2, 3 * i + a] = P.r[3 * i + a]
 
 
 @ti.func
-def _accelerate(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), n, window, est, state):
+def _accelerate(P: ti.template(), n, window, est, state):
     """After a sweep whose start had the running error `est`: state = (Anderson steps since the
     last restart, restarts left, the previous start's error). A combined start worse than the
     previous one is rejected: back to the previous sweep's result (what plain Gauss-Seidel had),
     history cleared; after ANDERSON_RESTARTS rejections, plain sweeps only."""
     since, on, last = ti.cast(state[0], ti.i32), ti.cast(state[1], ti.i32), state[2]
+    o_list, o_count = _carried_offsets(P)
     if since > 1 and est > last:
-        for l in range(3 * n):
-            r[l] = hist[2 * window, l]
+        for t in range(P.carried[o_count]):
+            i = P.carried[o_list + t]
+            for a in ti.static(range(3)):
+                P.r[3 * i + a] = P.hist[2 * window, 3 * i + a]
         since, on = 0, on - 1
     else:
         last = est
-        _anderson(r, hist, gram, mu, n, since, window)
+        _anderson(P, since, window)
         since += 1
     return ti.Vector([since, on, last])
 
 
 @ti.func
-def _anderson(r: ti.template(), hist: ti.template(), gram: ti.template(), mu: ti.template(), n, k, m):
+def _anderson(P: ti.template(), k, m):
     """Anderson step after sweep k (k = 0: the first since a restart). r holds g = G(x), the
     sweep's result, and hist[2m + 2] the x it started from. hist rows 0..m-1 hold ΔG, rows m..2m-1
     ΔF (ring buffers, F = G(x) - x), rows 2m, 2m + 1 the previous g and f; gram[i, j] = ΔF_i·ΔF_j.
-    r <- P_K(g - ΔG γ) with γ = argmin |f - ΔF γ| (normal equations, Cholesky). n: contacts."""
-    n3 = 3 * n
+    r <- P_K(g - ΔG γ) with γ = argmin |f - ΔF γ| (normal equations, Cholesky), over the contacts
+    listed in P.carried (the others' entries are zero)."""
+    o_list, o_count = _carried_offsets(P)
+    count = P.carried[o_count]
     slot = (k - 1) % m
     xr, gp, fp = 2 * m + 2, 2 * m, 2 * m + 1
-    for l in range(n3):
-        g, f = r[l], r[l] - hist[xr, l]
-        if k > 0:
-            hist[slot, l] = g - hist[gp, l]
-            hist[m + slot, l] = f - hist[fp, l]
-        hist[gp, l], hist[fp, l] = g, f
+    for t in range(count):
+        for c in ti.static(range(3)):
+            l = 3 * P.carried[o_list + t] + c
+            g, f = P.r[l], P.r[l] - P.hist[xr, l]
+            if k > 0:
+                P.hist[slot, l] = g - P.hist[gp, l]
+                P.hist[m + slot, l] = f - P.hist[fp, l]
+            P.hist[gp, l], P.hist[fp, l] = g, f
     p = ti.min(k, m)
     if p > 0:
         for j in range(p):                          # the new column of the Gram matrix, and ΔFᵀ f
             a, b = 0.0, 0.0
-            for l in range(n3):
-                a += hist[m + slot, l] * hist[m + j, l]
-                b += hist[m + j, l] * hist[fp, l]
-            gram[slot, j], gram[j, slot], gram[j, m] = a, a, b
+            for t in range(count):
+                for c in ti.static(range(3)):
+                    l = 3 * P.carried[o_list + t] + c
+                    a += P.hist[m + slot, l] * P.hist[m + j, l]
+                    b += P.hist[m + j, l] * P.hist[fp, l]
+            P.gram[slot, j], P.gram[j, slot], P.gram[j, m] = a, a, b
         # Cholesky of the p×p Gram matrix (regularised: its columns become nearly dependent) in
         # gram[.., m + 1 ..], then γ into gram[.., 2m + 1].
         trace = 0.0
         for j in range(p):
-            trace += gram[j, j]
+            trace += P.gram[j, j]
         ok = trace > 0.0
         c = m + 1
         for j in range(p):
-            d = gram[j, j] + 1e-10 * trace
+            d = P.gram[j, j] + 1e-10 * trace
             for i in range(j):
-                d -= gram[j, c + i] ** 2
+                d -= P.gram[j, c + i] ** 2
             if d <= 0.0:
                 ok = False
             d = ti.sqrt(ti.max(d, 1e-300))
-            gram[j, c + j] = d
+            P.gram[j, c + j] = d
             for i in range(j + 1, p):
-                e = gram[i, j]
+                e = P.gram[i, j]
                 for t in range(j):
-                    e -= gram[i, c + t] * gram[j, c + t]
-                gram[i, c + j] = e / d
+                    e -= P.gram[i, c + t] * P.gram[j, c + t]
+                P.gram[i, c + j] = e / d
         if ok:
             y = 2 * m + 1
             for i in range(p):                      # forward: L z = ΔFᵀ f
-                e = gram[i, m]
+                e = P.gram[i, m]
                 for t in range(i):
-                    e -= gram[i, c + t] * gram[t, y]
-                gram[i, y] = e / gram[i, c + i]
+                    e -= P.gram[i, c + t] * P.gram[t, y]
+                P.gram[i, y] = e / P.gram[i, c + i]
             for i0 in range(p):                     # backward: Lᵀ γ = z
                 i = p - 1 - i0
-                e = gram[i, y]
+                e = P.gram[i, y]
                 for t in range(i + 1, p):
-                    e -= gram[t, c + i] * gram[t, y]
-                gram[i, y] = e / gram[i, c + i]
-            for i in range(n):
-                x = vector_at(r, i)
+                    e -= P.gram[t, c + i] * P.gram[t, y]
+                P.gram[i, y] = e / P.gram[i, c + i]
+            for t in range(count):
+                i = P.carried[o_list + t]
+                x = vector_at(P.r, i)
                 for j in range(p):
                     for a in ti.static(range(3)):
-                        x[a] -= gram[j, y] * hist[j, 3 * i + a]
-                x = project_contact(x, mu[i])
+                        x[a] -= P.gram[j, y] * P.hist[j, 3 * i + a]
+                x = project_contact(x, P.mu[i])
                 for a in ti.static(range(3)):
-                    r[3 * i + a] = x[a]
+                    P.r[3 * i + a] = x[a]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -161,9 +218,12 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
     it, est, err2, since, on, last = 0, 0.0, 0.0, 0, ANDERSON_RESTARTS if window > 0 else 0, 1e300
     phase_err2, stalled = 0.0, 0
     stale, play = 0, 0          # FACTORED: y behind r; W among the contacts in play still kept
+    scan = 1                    # FACTORED: contacts may have come into play since W among them was formed
     # (y is first made by the residual at sweep 0, inside the loop: refreshed out here, at the
     # kernel's top level, its loops would each be a parallel task, a dispatch to the thread pool.)
     while True:
+        if it == 0 and on > 0:
+            _carry_from_start(P, n)
         if ti.static(layout == FACTORED):
             if it == 0:
                 _, o_count, _ = _play_offsets(W, n)
@@ -174,7 +234,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
         at_phase = stall > 0 and it % stall == 0
         if it == 0 or est <= tol2 or it >= max_it or at_phase:
             err2 = _residual(layout, W, P, n)
-            stale = 0
+            stale, scan = 0, 1
             if err2 <= tol2 or it >= max_it:
                 break
             if at_phase:
@@ -185,7 +245,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
                     stalled = 1
                     break
                 phase_err2 = err2
-        _save(P.r, P.hist, 2 * window + 2, on, 3 * n)
+        _save(P, window, on)
         revisit = it % REVISIT_EVERY == REVISIT_EVERY - 1
         formed = 0
         if ti.static(layout == FACTORED):
@@ -195,14 +255,29 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             # room), a few hundred multiply-adds each, not y kept through every dof of their
             # nodes (the pressed liver: ~15 of ~110 contacts in play, ~140 dofs). The same sweep,
             # rounding aside; the others, and every residual, read y.
+            # Only a residual or a sweep over every contact can bring others into play: after a
+            # sweep over those in play, with Anderson's steps among them, the next needs no search.
             if play and not revisit:
-                formed = _gather_play(W, P, n)
+                formed = 1
+                if scan:
+                    formed = _gather_play(W, P, n)
                 play = formed
+            scan = 1 - formed
             if not formed and stale:
                 _refresh(layout, W, P.r, n)
                 stale = 0
         est = 0.0
-        for i in range(n):
+        visits = n
+        if ti.static(layout == FACTORED):
+            if formed:
+                _, o_count, _ = _play_offsets(W, n)
+                visits = W.active[o_count]
+        for k in range(visits):
+            # (formed: those in play alone, in ascending order, which the test below would visit)
+            i = k
+            if ti.static(layout == FACTORED):
+                if formed:
+                    i = W.active[_play_ascending(W, n) + k]
             # Contact i solved with the others fixed; est gathers the error the old r_i had (a
             # cheap running estimate of the residual). A contact that carries nothing and was
             # apart (u_n > 0) when last seen is passed over until the next residual check, which
@@ -223,6 +298,8 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             for k in ti.static(range(3)):
                 P.r[3 * i + k] = rnew[k]
                 P.u[3 * i + k] = ui[k]
+            if on > 0 and rnew.norm_sqr() != 0.0:
+                _carry(P, window, i)
             est += contact_error2(ri, ui, P.mu[i])
             if ti.static(layout == FACTORED):
                 dr = rnew - ri
@@ -232,7 +309,7 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             stale = 1
         it += 1
         if on > 0:
-            acc = _accelerate(P.r, P.hist, P.gram, P.mu, n, window, est, ti.Vector([since, on, last]))
+            acc = _accelerate(P, n, window, est, ti.Vector([since, on, last]))
             since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
             stale = 1           # (y is refreshed where it is read next)
     P.stats[0] = it

@@ -36,11 +36,12 @@ DELASSUS = ti.types.argpack(a=ti.types.ndarray(), b=ti.types.ndarray(), c=ti.typ
                             active=ti.types.ndarray(), dense=ti.types.ndarray(),
                             dims=ti.types.ndarray(), scale=ti.types.ndarray())
 PROBLEM = ti.types.argpack(q=ti.types.ndarray(), mu=ti.types.ndarray(), r=ti.types.ndarray(), u=ti.types.ndarray(),
-                           hist=ti.types.ndarray(), gram=ti.types.ndarray(), stats=ti.types.ndarray(),
-                           sizes=ti.types.ndarray(), reals=ti.types.ndarray())
+                           hist=ti.types.ndarray(), gram=ti.types.ndarray(), carried=ti.types.ndarray(),
+                           stats=ti.types.ndarray(), sizes=ti.types.ndarray(), reals=ti.types.ndarray())
 # W.dims (int): the factored layout's blocks, segments and room for contacts in play (gauss_seidel's
-# dense W among them: `active` holds each contact's slot there (n), the slots' contacts (room) and
-# their count; `dense` that W, 3 room × 3 room, then one contact's row of P Q, 3 × the dofs). P.sizes (int): contacts, Anderson's
+# dense W among them: `active` holds each contact's slot there (n), the slots' contacts (room), their
+# count and the same contacts in ascending order (room); `dense` that W, 3 room × 3 room, then one
+# contact's row of P Q, 3 × the dofs). P.sizes (int): contacts, Anderson's
 # window, the sweep cap, the stall phase and its horizon (gauss_seidel.run). P.reals: the squared
 # tolerance.
 NNZ, SEGMENTS, ROOM = 0, 1, 2
@@ -136,6 +137,12 @@ def _play_offsets(W: ti.template(), n):
 
 
 @ti.func
+def _play_ascending(W: ti.template(), n):
+    """FACTORED: where `active` lists the contacts in play in ascending order (after their count)."""
+    return n + W.dims[ROOM] + 1
+
+
+@ti.func
 def _in_play(r: ti.template(), u: ti.template(), i):
     """Contact i carries a reaction or touched (u_n ≤ 0) when last solved: a sweep visits it (the
     negation of the sweeps' skip test, whatever the numbers)."""
@@ -168,6 +175,12 @@ def _join_play(W: ti.template(), n, i):
     W.active[i] = s
     W.active[o_list + s] = i
     W.active[o_count] = s + 1
+    o_ascending = _play_ascending(W, n)
+    at = s
+    while at > 0 and W.active[o_ascending + at - 1] > i:
+        W.active[o_ascending + at] = W.active[o_ascending + at - 1]
+        at -= 1
+    W.active[o_ascending + at] = i
     scale = W.scale[0]
     for t in range(s + 1):
         j = W.active[o_list + t]

@@ -557,11 +557,12 @@ class ContactStage:
                 self._frictionless = (mu, (mu == 0).nonzero()[0])
             t = self._frictionless[1]
             if factored:
-                D = W.diagonal.copy()
+                D = W.diagonal
                 if len(t):
+                    D = D.copy()
                     D[t, 1, 1] = D[t, 2, 2] = D[t, 0, 0]
                 scale = float((D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]).sum() / len(D)) / 3.0   # (np.trace's, np.mean's)
-                scaled = replace(W, diagonal=D).scaled(1.0 / scale)
+                scaled = W.scaled(1.0 / scale, D)
             else:
                 diagonal = np.diagonal(Wc).copy()
                 for j in (1, 2) if len(t) else ():
