@@ -23,7 +23,7 @@ from ..fem.assembled import BLOCKS
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL
 from ..launch import replayed
-from . import multigrid
+from . import multigrid, warm_start
 from .multigrid import MULTIGRID_MEMBERS
 from .operator import factors, multiply, operator_row, stiffness_diagonal, stiffness_times
 from .parameters import DT, GX, GY, GZ, MASS_DAMPING, MAX_ITERATIONS, THRESHOLD, TOLERANCE, WARM_START
@@ -198,21 +198,15 @@ def _guess(k: ti.template(), v):
 
 @ti.func
 def _warm_start(k: ti.template(), o: ti.template()):
-    """Warm: r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
-    if ti.static(o.operator == "matrix_free"):
-        for e in range(k.counts[1]):
-            if k.parameters[WARM_START] != 0:
-                corotational.scatter_element(k, k, "stiffness", e, k.dv, o.accumulation, o.rotation)
-    elif ti.static(o.layout == "symmetric"):   # one thread runs the step: a runtime branch is free
-        if k.parameters[WARM_START] != 0:
-            assembled.symmetric_multiply(k, k, k.dv)
-    mass_factor, stiffness_factor = factors(k)
+    """Warm: dv the best start within what the last steps solved (tissue.solver.warm_start), r = b − A dv,
+    z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
+    warm_start.combine(k, o)
     for b in range(blocks(k)):
         if k.parameters[WARM_START] != 0:
             rz, rr = 0.0, 0.0
             begin, end = block_nodes(k, b)
             for v in range(begin, end):
-                products = _set_residual(k, o, v, k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor))
+                products = _set_residual(k, o, v, warm_start.start_at(k, v))
                 rz += products[0]
                 rr += products[1]
             k.partial[0, b] = rz
@@ -336,6 +330,7 @@ def end(k: ti.template()):
             if not (vel.norm_sqr() < 1e300):  # NaN or inf
                 bad += 1.0
             k.v[v] = vel
+            warm_start.remember_end(k, v, vel)
             k.x[v] = k.x[v] + h * vel
             rr += k.r[v].dot(k.r[v])
         k.partial[0, b] = rr
