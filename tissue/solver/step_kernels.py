@@ -90,11 +90,14 @@ def _preconditioned(k: ti.template(), o: ti.template(), v, r):
 @ti.func
 def _precondition_coupled(k: ti.template(), o: ti.template(), first):
     """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first, a value known at
-    compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value."""
+    compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value;
+    none of it where the CG stops before (_start_cg then finds rᵀz = 0 and stops)."""
     if ti.static(o.preconditioner == "multigrid"):
         for _ in range(1):
             if not first:
                 _stop_before_preconditioning(k)
+            elif sum_partials(k, 1) <= k.parameters[TOLERANCE] * k.parameters[TOLERANCE] * sum_partials(k, 2):
+                k.scalars[DONE] = 1     # the start meets the stopping rule (a warm one can): no V-cycle
         multigrid.apply(k, o, k.r, k.z)
         for b in range(blocks(k)):
             rz = 0.0
