@@ -165,6 +165,7 @@ def begin(k: ti.template(), o: ti.template(), tol):
                 k.block_inverse[v] = A.inverse()
             k.dv[v] = _guess(k, v)
             if k.parameters[WARM_START] != 0:   # CG starts from b − A dv: _warm_start preconditions it
+                warm_start.take_directions(k, v, k.dv[v])
                 k.r[v] = rhs
                 rr += rhs.dot(rhs)
             else:

@@ -133,17 +133,20 @@ def _coefficients(k: ti.template()):
 
 
 @ti.func
+def take_directions(k: ti.template(), v, guess):
+    """Node v's new directions: the guess, the newest correction's velocity change; all zero at a
+    held node (the kept ones were taken under the held nodes of their own steps)."""
+    k.warm[0, v] = guess
+    k.warm[NEWEST_CORRECTION, v] = k.v[v] - k.warm[END_VELOCITY, v]
+    if k.held[v] != 0:
+        for i in ti.static(range(DIRECTIONS)):
+            k.warm[i, v] = ti.Vector([0.0, 0.0, 0.0])
+
+
+@ti.func
 def combine(k: ti.template(), o: ti.template()):
-    """The directions (the guess from dv, the newest correction's velocity change; all zero at held
-    nodes: the kept ones were taken under the held nodes of their own steps), their products and
-    the coefficients of the start (`start_at` then takes it node by node)."""
-    for v in range(k.counts[0]):
-        if k.parameters[WARM_START] != 0:
-            k.warm[0, v] = k.dv[v]
-            k.warm[NEWEST_CORRECTION, v] = k.v[v] - k.warm[END_VELOCITY, v]
-            if k.held[v] != 0:
-                for i in ti.static(range(DIRECTIONS)):
-                    k.warm[i, v] = ti.Vector([0.0, 0.0, 0.0])
+    """The directions' products and the coefficients of the start, once every node took its
+    directions (`take_directions`); `start_at` then takes the start node by node."""
     if ti.static(o.serial):         # one thread: the directions in a runtime loop (one copy of the code)
         for i in range(DIRECTIONS):
             _direction_product(k, o, i)
