@@ -191,7 +191,7 @@ def _set_residual(k: ti.template(), o: ti.template(), v, r):
 @ti.func
 def _guess(k: ti.template(), v):
     """CG's start at node v: zero, or warm, the last solve's dv scaled to this dt (zero at held
-    nodes, and where it is not finite)."""
+    nodes, and where it is not finite): the first of the directions the warm start combines."""
     guess = ti.Vector([0.0, 0.0, 0.0])
     if k.parameters[WARM_START] != 0 and k.scalars[LAST_DT] > 0 and k.held[v] == 0:
         guess = (k.parameters[DT] / k.scalars[LAST_DT]) * k.dv[v]
