@@ -9,7 +9,7 @@ to ‖r‖ ≤ 1e-3 ‖b‖ (a stopping rule CG meets), and `liver_press` (multi
 Settings, each a simulation of its own, stepped alternately in this process (so the machine's
 drift hits all alike): `apart` (the energy check's evaluations in launches of their own, before
 this commit's fused check), `fused` (in the serial step's launch) and `fused+warm` (CG started from
-the last solve: CGSettings.warm_start), beside a `converged` run (CG to 1e-12, up to 2,000
+the last solves and corrections: CGSettings.warm_start), beside a `converged` run (CG to 1e-12, up to 2,000
 iterations) that the others' positions are compared with. Per scene and setting: the median wall ms
 of the free-motion stage and the process's CPU ms per whole step (medians over 3 steps in 4), the
 Taichi launches per step (every 4th step, counted; all, and the free motion's: its kernels and the

@@ -5,9 +5,9 @@
 
 Two commits whose rounding differs part in `liver_press` (the pressed liver amplifies any change
 within the CG tolerance), so whole runs compare the code's cost on different states. Here this
-checkout runs the scene for `--settle` steps and keeps each body's state: x, v, and the last
-solve's dv and CG scalars, which the warm start reads. Then each checkout, alternately, in a process
-of its own, builds the scene, and for each body launches its step as the scene takes it (the
+checkout runs the scene for `--settle` steps and keeps each body's state: x, v, the last solve's
+dv and CG scalars, and the vectors the warm start keeps (each checkout loads those it has). Then
+each checkout, alternately, in a process of its own, builds the scene, and for each body launches its step as the scene takes it (the
 serial step with the energy check's two evaluations, one launch) `--launches` times, each from that
 state. Per body and commit: the median over rounds of each round's median CPU ms per launch (the
 process's CPU time: steadier than the wall clock when other jobs share the cores), the least round,
@@ -24,8 +24,9 @@ import numpy as np
 
 from bench.common import ROOT, alternate_with_commit, machine, print_machine, run_child, write_results
 
-# The solver's arrays a step reads from its state (both checkouts lay them out alike).
-STATE = ("x", "v", "dv", "scalars")
+# The solver's arrays a step reads from its state (those of them a checkout has: "warm", the warm
+# start's kept vectors, since tissue.solver.warm_start).
+STATE = ("x", "v", "dv", "scalars", "warm")
 
 # Runs in a checkout over its own tissue: with SETTLE, steps the scene and saves its bodies' state
 # in STATE_FILE; else loads it and times each body's step from it.
@@ -48,7 +49,8 @@ settle, launches = int(os.environ["TISSUE_SETTLE"]), int(os.environ["TISSUE_LAUN
 if settle:
     for _ in range(settle):
         sim.step()
-    np.savez(path, **{f"{body}/{a}": b.solver.arrays[a].to_numpy() for body, b in sim.bodies.items() for a in names})
+    np.savez(path, **{f"{body}/{a}": b.solver.arrays[a].to_numpy() for body, b in sim.bodies.items() for a in names
+                      if a in b.solver.arrays})
     sys.exit(0)
 sim.step()            # compiles
 saved = np.load(path)
@@ -60,7 +62,8 @@ for body, b in sim.bodies.items():
     cpu = []
     for _ in range(launches):
         for a in names:
-            solver.arrays[a].from_numpy(saved[f"{body}/{a}"])
+            if a in solver.arrays:
+                solver.arrays[a].from_numpy(saved[f"{body}/{a}"])
         start = time.process_time()
         CHECKED_SERIAL(k, o, w, tol, control._slot, 0)
         cpu.append(time.process_time() - start)

@@ -229,7 +229,7 @@ def solver_for(cell: dict, mesh, material):
     fem = solver.fem
     fem.model.set_material(material)     # a runtime change: nothing recompiles
     solver.check_regime()                # the refusal a new solver gives at its first step, now
-    solver.arrays["dv"].fill(0.0)        # the warm start's last solution: the last cell's, not this one's
+    solver.forget_solves()               # the warm start's last solutions: the last cell's, not this one's
     solver.stats = Stats()
     solver._warned_inversion = False     # the solver warns once per life: here, once per cell
     return solver

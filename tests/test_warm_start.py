@@ -1,5 +1,5 @@
-"""CG warm-started from the last solve (CGSettings.warm_start) against references it did not
-produce: the scipy direct solve of the same linearised step and its residual (tissue.solver.reference),
+"""CG warm-started from the last solves and corrections (CGSettings.warm_start,
+tissue.solver.warm_start) against references it did not produce: the scipy direct solve of the same linearised step and its residual (tissue.solver.reference),
 and free fall in closed form. A warm start changes where CG starts, not where it stops."""
 
 from dataclasses import replace
@@ -93,6 +93,55 @@ def test_warm_started_steps_match_the_direct_solve(solver, config):
     finally:
         sim.set_fixed(FIXED)
         sim.set_parameters(cg=settings)
+
+
+@pytest.mark.parametrize("config", CONFIGS + [("large", "gather", "serial", "assembled", "multigrid")],
+                         ids="-".join)
+def test_start_is_the_best_combination_of_the_last_steps(solver, config):
+    """Reference: the start of least A-norm error over the span of what the warm start keeps
+    (tissue.solver.warm_start), from the reference's assembled A and b in numpy. Four steps to
+    1e-12 from a standard state, the free nodes' velocities kicked by 2 cm/s between steps (as a
+    contact correction changes them); then a step stopped where it starts (tolerance 1e3: no CG
+    iteration), whose dv is the start. D: the last solve's dv, the one before, the last kick and
+    the one before. Its dv is D c with DᵀA D c = Dᵀb to 1e-8, and its error in the A-norm is no
+    larger than that of the last dv alone (the plain warm start) or of zero."""
+    sim = solver(*config)
+    x0, v0 = standard_state(3)
+    rng = np.random.default_rng(4)
+    free_nodes = np.setdiff1d(np.arange(BEAM.n_points), FIXED)
+    settings = sim.cg
+    solves, kicks = [], []
+    try:
+        sim.set_parameters(cg=replace(settings, warm_start=True, tolerance=1e-12, max_iterations=300))
+        sim.set_state(x0, v0)
+        for _ in range(4):
+            v = sim.velocities()
+            sim.step()
+            solves.append(sim.velocities() - v)
+            kick = np.zeros_like(v)
+            kick[free_nodes] = 0.02 * rng.standard_normal((len(free_nodes), 3))
+            sim.set_state(velocities=sim.velocities() + kick)
+            kicks.append(kick)
+        x, v = sim.positions(), sim.velocities()
+        sim.set_parameters(cg=replace(settings, warm_start=True, tolerance=1e3))
+        sim.step()
+        assert sim.stats.counters["cg_iterations"] == 0
+        start = (sim.velocities() - v).reshape(-1)
+    finally:
+        sim.set_parameters(cg=settings)
+    system = ref.linearise(BEAM, MATERIAL, x, v, rotation="large", **STEP)
+    free = ref.free_dofs(BEAM.n_points, FIXED)
+    A, b = system.A[free][:, free].toarray(), system.b[free]
+    D = np.stack([d.reshape(-1)[free] for d in (solves[-1], solves[-2], kicks[-1], kicks[-2])], axis=1)
+    best = D @ np.linalg.solve(D.T @ A @ D, D.T @ b)
+    assert rel(start[free], best) <= 1e-8
+    solution = np.linalg.solve(A, b)
+
+    def error(guess):
+        e = solution - guess
+        return float(np.sqrt(e @ A @ e))
+
+    assert error(start[free]) <= min(error(D[:, 0]), error(np.zeros_like(b))) * (1 + 1e-9)
 
 
 def test_free_fall_starts_at_its_solution(backend):

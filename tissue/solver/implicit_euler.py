@@ -34,6 +34,7 @@ from .reference import rest_matrix
 from .state import BLOCK, BREAKDOWN, ITERATION, NONFINITE, RES2, RHS2, SCALARS
 from .step_kernels import (BEGIN_PARALLEL, BLOCK_MEMBERS, END_PARALLEL, ITERATE_PARALLEL, PLAIN_SERIAL, PLAIN_STEP,
                            SERIAL, STEP, Scheme, unused)
+from .warm_start import PARTIAL_ROWS, WARM_ROWS
 
 EXECUTIONS = ("auto", "serial", "parallel")
 OPERATORS = ("assembled", "matrix_free")
@@ -183,8 +184,9 @@ class ImplicitEuler:
         arrays = {name: ti.ndarray(vec3, n) for name in ("x", "v", "dv", "r", "z", "p", "q", "external")}
         arrays["block_inverse"] = ti.ndarray(mat3, n if self.scheme.preconditioner != "none" else 1)
         arrays["scalars"] = ti.ndarray(real, SCALARS)
-        arrays["partial"] = ti.ndarray(real, (3, (n + BLOCK - 1) // BLOCK))
+        arrays["partial"] = ti.ndarray(real, (PARTIAL_ROWS, (n + BLOCK - 1) // BLOCK))
         arrays["parameters"] = ti.ndarray(real, PARAMETERS)
+        arrays["warm"] = ti.ndarray(vec3, (WARM_ROWS, n))
         for name in ("x", "v", "external"):
             values = np.zeros((n, 3), dtype=real_numpy())
             if old is not None:
@@ -198,6 +200,7 @@ class ImplicitEuler:
         self.arrays = arrays
         self.x, self.v = arrays["x"], arrays["v"]
         self._views = {}
+        self.forget_solves()
         self._upload_parameters()
         self.allocations += 1
         self._version = model.version
@@ -206,6 +209,13 @@ class ImplicitEuler:
         self._resize()
         if self.multigrid is not None:
             self.multigrid.rebuild()
+
+    def forget_solves(self) -> None:
+        """Start the next step's CG as a new solver's first: what the warm start keeps of the last
+        steps (their solves' dv, their corrections: tissue.solver.warm_start) set to zero."""
+        for name in ("dv", "warm"):
+            array = self.arrays[name]
+            array.from_numpy(np.zeros(array.shape + (3,), dtype=real_numpy()))
 
     def _step_pack(self, kind=STEP):
         """The argpack of a launch (STEP, or PLAIN_STEP without the multigrid's arrays), rebuilt

@@ -27,8 +27,9 @@ class CGSettings:
     # the degree of its Chebyshev smoother (products with A per smoothing).
     coarse_nodes: int | None = None
     smoothing_degree: int = 2
-    # Start from the last solve's dv scaled to this dt (the same acceleration) instead of zero; the
-    # stopping rule is the same. A body at rest or in steady motion starts near its solution.
+    # Start from the best combination (least A-norm error) of the last solves' dv and the last
+    # contact corrections' velocity changes instead of zero (tissue.solver.warm_start); the stopping
+    # rule is the same. A body at rest, in steady motion or pressed starts near its solution.
     warm_start: bool = False
 
     def __post_init__(self):

@@ -5,8 +5,9 @@ sums make the dot products (added in a fixed order, so reruns are bit-identical)
 import taichi as ti
 
 # Nodal vectors, the block-diagonal inverse (preconditioners), the CG's scalars (slots below),
-# blocked partial sums, and the step's parameters (tissue.solver.parameters's slots).
-STATE_MEMBERS = ("x", "v", "dv", "r", "z", "p", "q", "external", "block_inverse", "scalars", "partial", "parameters")
+# blocked partial sums, the step's parameters (tissue.solver.parameters's slots), and the warm
+# start's vectors (tissue.solver.warm_start).
+STATE_MEMBERS = ("x", "v", "dv", "r", "z", "p", "q", "external", "block_inverse", "scalars", "partial", "parameters", "warm")
 # Scalar slots of the CG state (LAST_DT: the dt of the last solve, its dv's).
 DELTA, DELTA_OLD, PQ, ALPHA, BETA, ITERATION, DONE, BREAKDOWN, RHS2, RES2, NONFINITE, LAST_DT = range(12)
 SCALARS = 12

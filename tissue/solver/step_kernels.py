@@ -23,7 +23,7 @@ from ..fem.assembled import BLOCKS
 from ..fem.corotational import FEM_WORK
 from ..fem.model import DETACHED, MODEL
 from ..launch import replayed
-from . import multigrid
+from . import multigrid, warm_start
 from .multigrid import MULTIGRID_MEMBERS
 from .operator import factors, multiply, operator_row, stiffness_diagonal, stiffness_times
 from .parameters import DT, GX, GY, GZ, MASS_DAMPING, MAX_ITERATIONS, THRESHOLD, TOLERANCE, WARM_START
@@ -90,11 +90,14 @@ def _preconditioned(k: ti.template(), o: ti.template(), v, r):
 @ti.func
 def _precondition_coupled(k: ti.template(), o: ti.template(), first):
     """For multigrid, once r is complete: z = P⁻¹ r (and p = z on the first, a value known at
-    compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value."""
+    compile time or at run time), and rᵀz into partial[0] in place of the node-by-node value;
+    none of it where the CG stops before (_start_cg then finds rᵀz = 0 and stops)."""
     if ti.static(o.preconditioner == "multigrid"):
         for _ in range(1):
             if not first:
                 _stop_before_preconditioning(k)
+            elif sum_partials(k, 1) <= k.parameters[TOLERANCE] * k.parameters[TOLERANCE] * sum_partials(k, 2):
+                k.scalars[DONE] = 1     # the start meets the stopping rule (a warm one can): no V-cycle
         multigrid.apply(k, o, k.r, k.z)
         for b in range(blocks(k)):
             rz = 0.0
@@ -162,6 +165,7 @@ def begin(k: ti.template(), o: ti.template(), tol):
                 k.block_inverse[v] = A.inverse()
             k.dv[v] = _guess(k, v)
             if k.parameters[WARM_START] != 0:   # CG starts from b − A dv: _warm_start preconditions it
+                warm_start.take_directions(k, v, k.dv[v])
                 k.r[v] = rhs
                 rr += rhs.dot(rhs)
             else:
@@ -187,7 +191,7 @@ def _set_residual(k: ti.template(), o: ti.template(), v, r):
 @ti.func
 def _guess(k: ti.template(), v):
     """CG's start at node v: zero, or warm, the last solve's dv scaled to this dt (zero at held
-    nodes, and where it is not finite)."""
+    nodes, and where it is not finite): the first of the directions the warm start combines."""
     guess = ti.Vector([0.0, 0.0, 0.0])
     if k.parameters[WARM_START] != 0 and k.scalars[LAST_DT] > 0 and k.held[v] == 0:
         guess = (k.parameters[DT] / k.scalars[LAST_DT]) * k.dv[v]
@@ -198,21 +202,15 @@ def _guess(k: ti.template(), v):
 
 @ti.func
 def _warm_start(k: ti.template(), o: ti.template()):
-    """Warm: r = b − A dv, z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
-    if ti.static(o.operator == "matrix_free"):
-        for e in range(k.counts[1]):
-            if k.parameters[WARM_START] != 0:
-                corotational.scatter_element(k, k, "stiffness", e, k.dv, o.accumulation, o.rotation)
-    elif ti.static(o.layout == "symmetric"):   # one thread runs the step: a runtime branch is free
-        if k.parameters[WARM_START] != 0:
-            assembled.symmetric_multiply(k, k, k.dv)
-    mass_factor, stiffness_factor = factors(k)
+    """Warm: dv the best start within what the last steps solved (tissue.solver.warm_start), r = b − A dv,
+    z = p = P⁻¹ r node by node, and rᵀz, rᵀr anew (cold, dv = 0: as they are)."""
+    warm_start.combine(k, o)
     for b in range(blocks(k)):
         if k.parameters[WARM_START] != 0:
             rz, rr = 0.0, 0.0
             begin, end = block_nodes(k, b)
             for v in range(begin, end):
-                products = _set_residual(k, o, v, k.r[v] - operator_row(k, o, v, k.dv, mass_factor, stiffness_factor))
+                products = _set_residual(k, o, v, warm_start.start_at(k, v))
                 rz += products[0]
                 rr += products[1]
             k.partial[0, b] = rz
@@ -336,6 +334,7 @@ def end(k: ti.template()):
             if not (vel.norm_sqr() < 1e300):  # NaN or inf
                 bad += 1.0
             k.v[v] = vel
+            warm_start.remember_end(k, v, vel)
             k.x[v] = k.x[v] + h * vel
             rr += k.r[v].dot(k.r[v])
         k.partial[0, b] = rr
