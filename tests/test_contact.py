@@ -272,26 +272,6 @@ def test_triangle_mesh_obstacle_agrees_with_box_primitive(backend):
     np.testing.assert_allclose(a.normal[ia][far], b.normal[ib][far], atol=1e-4)
 
 
-def closest_point_brute_force(p, a, b, c):
-    """Closest point of triangle abc to p by minimising over a fine barycentric lattice, then
-    projecting onto the plane / the edges (an independent check of Ericson's region test)."""
-    best, best_q = np.inf, None
-    n = np.cross(b - a, c - a)
-    n /= np.linalg.norm(n)
-    q = p - (p - a) @ n * n                        # projection onto the plane
-    M = np.column_stack([b - a, c - a])
-    s, t = np.linalg.lstsq(M, q - a, rcond=None)[0]
-    candidates = [q] if (s >= 0 and t >= 0 and s + t <= 1) else []
-    for u, v in ((a, b), (b, c), (c, a)):
-        lam = np.clip((p - u) @ (v - u) / ((v - u) @ (v - u)), 0, 1)
-        candidates.append(u + lam * (v - u))
-    for cand in candidates:
-        d = np.linalg.norm(p - cand)
-        if d < best:
-            best, best_q = d, cand
-    return best, best_q
-
-
 def test_soft_soft_detection_matches_brute_force(backend):
     from tissue.contact.detection import Detector
     from tissue.mesh import boundary_faces, box
@@ -308,15 +288,14 @@ def test_soft_soft_detection_matches_brute_force(backend):
     xb = B.points
     for body, x_own, x_other, faces_other in ((0, xa, xb, fb), (1, xb, xa, fa)):
         found = {int(v): k for k, v in enumerate(c.vertex) if c.body[k] == body}
-        for v in np.unique((fa, fb)[body]):
-            dists = [closest_point_brute_force(x_own[v], *x_other[f]) for f in faces_other]
-            d = min(dists, key=lambda t: t[0])
-            if d[0] < alarm - 1e-9:
-                assert v in found, (body, v, d[0])
+        vertices = np.unique((fa, fb)[body])
+        for v, d in zip(vertices, distances_to_triangles(x_own[vertices], x_other[faces_other]).min(axis=1)):
+            if d < alarm - 1e-9:
+                assert v in found, (body, v, d)
                 k = found[v]
-                assert abs(abs(c.gap[k]) - d[0]) < 1e-12
+                assert abs(abs(c.gap[k]) - d) < 1e-12
                 np.testing.assert_allclose(c.weights[k] @ x_other[c.triangle[k]], c.closest[k], atol=1e-12)
-            elif d[0] > alarm + 1e-9:
+            elif d > alarm + 1e-9:
                 assert v not in found
     # Sign: A's vertices below B's top face (z < 0 after tilting) are penetrating.
     mine = c.body == 0
@@ -533,30 +512,40 @@ def _random_contacts(rng, k, sizes, n_obstacles=2):
                     closest=np.zeros((k, 3)), other_motion=rng.normal(0, 1e-3, (k, 3)) * (rng.random((k, 1)) < 0.5))
 
 
+def _assert_same_rows(a, b, what):
+    """ConstraintRows a and b hold the same arrays, bit for bit (dtype and shape too)."""
+    assert (a.n_rows, a.n_contacts) == (b.n_rows, b.n_contacts), what
+    for name in ("block", "body", "node", "value", "q", "frames", "directions"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), (what, name)
+
+
 def test_rows_written_by_the_launch_equal_the_numpy_builders(backend):
     """tissue.contact.row_writer's launch (the stage's rows without attachments or jaws) and the
     numpy builders (jacobian, with_free_values, JaggedDiagonal: the rows with attachments or jaws)
     give the same arrays, bit for bit, on random contacts of one to three bodies, soft–soft and
     soft–rigid, frictionless or not, numbers of contacts that grow past the buffers' first room
-    and shrink; and each JDS is H (body_matrix)."""
+    and shrink, the later trials' states in one array filled in place (the launch replayed over
+    the same objects, the bodies' offsets in it changed); and each JDS is H (body_matrix). A soft
+    contact of a body with itself is refused."""
     from tissue.contact.constraints import JaggedDiagonal, build_rows, offsets
     from tissue.contact.row_writer import RowWriter
 
     writer, rng = RowWriter(), np.random.default_rng(7)
-    for trial, k in enumerate((1, 40, 300, 2500, 7, 150, 90, 200)):
-        sizes = [int(s) for s in rng.integers(4, 80, 1 + trial % 3)]
+    reused = np.empty((3 * 80, 6))
+    # (the writer alternates two sets of buffers: trials 4 and 6, 5 and 7 share one, and a body count)
+    for trial, (k, n_bodies) in enumerate(((1, 1), (40, 2), (300, 3), (2500, 1), (7, 2), (150, 3), (90, 2), (200, 3))):
+        sizes = [int(s) for s in rng.integers(4, 80, n_bodies)]
         offset = offsets(sizes)
-        states = rng.standard_normal((offset[-1], 6))
+        states = reused if trial >= 4 else np.empty((offset[-1], 6))
+        states[:offset[-1]] = rng.standard_normal((offset[-1], 6))
         free = [states[a:b, :3] for a, b in zip(offset[:-1], offset[1:])]
         prev = [states[a:b, 3:] for a, b in zip(offset[:-1], offset[1:])]
         contacts = _random_contacts(rng, k, sizes)
         frictionless = rng.random(k) < (0.3 if trial % 2 else 0.0)
         expected = build_rows(contacts, free, prev, frictionless=frictionless)
         rows, jds = writer.write(contacts, frictionless, states, offset.astype(np.int32))
-        assert (rows.n_rows, rows.n_contacts) == (expected.n_rows, expected.n_contacts)
-        for name in ("block", "body", "node", "value", "q", "frames", "directions"):
-            a, e = getattr(rows, name), getattr(expected, name)
-            assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, name)
+        _assert_same_rows(rows, expected, trial)
         assert list(jds) == np.bincount(expected.body, minlength=len(sizes)).nonzero()[0].tolist()
         for b, written in jds.items():
             built = JaggedDiagonal(expected, b)
@@ -566,6 +555,11 @@ def test_rows_written_by_the_launch_equal_the_numpy_builders(backend):
                 assert a.dtype == e.dtype and a.tobytes() == e.tobytes(), (trial, b, name)
             np.testing.assert_array_equal(written.to_dense(rows.n_rows, sizes[b]),
                                           expected.body_matrix(b, sizes[b]).toarray())
+    contacts = _random_contacts(rng, 20, [10, 10])
+    on_itself = contacts.soft.nonzero()[0][0]
+    contacts.other[on_itself] = contacts.body[on_itself]
+    with pytest.raises(TissueError, match="itself"):
+        writer.write(contacts, np.zeros(20, bool), reused, np.array([0, 10, 20], np.int32))
 
 
 def _numpy_read_out(hits, poses, previous_poses, moving):
@@ -573,7 +567,7 @@ def _numpy_read_out(hits, poses, previous_poses, moving):
     read-out launch's reference)."""
     from tissue.contact.contacts import Contacts
 
-    hit = hits.gap < 1e299
+    hit = hits.gap < hits.no_hit
     hit[np.r_[hits.body[1:] != hits.body[:-1], True]] = False          # each body's last row: its room
     row, slot = np.divmod(hit.ravel().nonzero()[0], hits.gap.shape[1])
     res = hits.array[row, slot].astype(np.float64)
@@ -663,10 +657,10 @@ def test_hits_read_out_by_the_launch_equal_numpys(backend, precision):
         ContactStage._held_nodes(stage)
         for read in range(4):
             if read == 2:                                 # a hit more
-                row, slot = np.argwhere(hits.gap[:-1, :2] >= 1e299)[0]
+                row, slot = np.argwhere(hits.gap[:-1, :2] == hits.no_hit)[0]
                 hits.gap[row, slot] = 1e-4
             if read == 3:                                 # a hit on the other obstacle instead
-                row = np.flatnonzero((hits.gap[:-1, 0] < 1e299) & (hits.gap[:-1, 1] >= 1e299))[0]
+                row = np.flatnonzero((hits.gap[:-1, 0] < hits.no_hit) & (hits.gap[:-1, 1] == hits.no_hit))[0]
                 hits.gap[row, :2] = hits.gap[row, 1], hits.gap[row, 0]
             contacts = hits.contacts(poses, previous, [1])
             expected = _numpy_read_out(hits, poses, previous, [1])
@@ -687,12 +681,8 @@ def test_hits_read_out_by_the_launch_equal_numpys(backend, precision):
             rows, _ = writer.write(contacts, frictionless, states, offset.astype(np.int32))
             built = build_rows(expected, free, prev, frictionless=frictionless)
             by_numpy = build_rows(contacts, free, prev, frictionless=frictionless)     # (on the record's views)
-            for name in ("block", "body", "node", "value", "q", "frames", "directions"):
-                a, e = getattr(by_numpy, name), getattr(built, name)
-                assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, read, name)
-            for name in ("block", "body", "node", "value", "q", "frames", "directions"):
-                a, e = getattr(rows, name), getattr(built, name)
-                assert a.dtype == e.dtype and a.shape == e.shape and a.tobytes() == e.tobytes(), (trial, read, name)
+            _assert_same_rows(by_numpy, built, (trial, read))
+            _assert_same_rows(rows, built, (trial, read))
     assert dropped
 
 # ----------------------------------------------------------------------------------------------
@@ -1391,8 +1381,7 @@ def test_rows_of_contacts_at_rest_are_kept_and_rebuilt_when_they_change(damped_b
         prev = [x[:, 3:] for x in stage.detector.state]
         mu = 0.0 if step >= 45 else 0.5
         fresh = build_rows(r.contacts, free, prev, frictionless=np.full(len(r.contacts), mu == 0))
-        for name in ("block", "body", "node", "value", "q", "frames"):
-            assert getattr(r.rows, name).tobytes() == getattr(fresh, name).tobytes(), f"step {step}: {name}"
+        _assert_same_rows(r.rows, fresh, f"step {step}")
         jds, fresh_jds = stage._kept.jds[0], JaggedDiagonal(fresh, 0)
         for name in ("packed", "value", "row"):
             assert getattr(jds, name).tobytes() == getattr(fresh_jds, name).tobytes(), f"step {step}: JDS {name}"
@@ -1478,7 +1467,7 @@ def _probe_depth(solver, centre, radius):
     from tissue.mesh import boundary_faces
 
     x = solver.positions()
-    return radius - min(closest_point_brute_force(centre, *x[f])[0] for f in boundary_faces(solver.fem.mesh.tets))
+    return radius - distances_to_triangles(np.reshape(centre, (1, 3)), x[boundary_faces(solver.fem.mesh.tets)]).min()
 
 
 @pytest.mark.parametrize("sampling", ["vertices", "faces"])

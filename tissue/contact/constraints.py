@@ -75,7 +75,7 @@ def offsets(counts) -> np.ndarray:
 
 # AXIS_CROSS[a] @ n = n × e_a (e_a the world axis a)
 AXIS_CROSS = np.array([[[0, 0, 0], [0, 0, 1], [0, -1, 0]], [[0, 0, -1], [0, 0, 0], [1, 0, 0]],
-                   [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]], dtype=np.float64)
+                       [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]], dtype=np.float64)
 
 
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
@@ -261,17 +261,18 @@ class JaggedDiagonal:
 
     @classmethod
     def from_packed(cls, packed: np.ndarray, value: np.ndarray, row: np.ndarray, n_active: int,
-                    n_diagonals: int) -> "JaggedDiagonal":
-        """The JDS whose `packed`, `value` and `row` are written already (tissue.contact.row_writer):
-        its other arrays as views of `packed`."""
+                    n_diagonals: int, n_touched: int) -> "JaggedDiagonal":
+        """The JDS whose `packed` (from its start on), `value` and `row` are written already
+        (tissue.contact.row_writer): its other arrays as views of `packed`."""
         jds = cls.__new__(cls)
-        jds.packed, jds.value, jds.row = packed, value, row
         jds.n_active, jds.nnz = n_active, len(row)
         o_node = 2 * n_active + n_diagonals + 1
         o_local = o_node + jds.nnz
+        o_touched = o_local + jds.nnz
+        jds.packed, jds.value, jds.row = packed[:o_touched + n_touched], value, row
         jds.perm, jds.count, jds.jd_ptr = packed[:n_active], packed[n_active:2 * n_active], packed[2 * n_active:o_node]
-        jds.node, jds.local, jds.touched = packed[o_node:o_local], packed[o_local:o_local + jds.nnz], \
-            packed[o_local + jds.nnz:]
+        jds.node, jds.local = packed[o_node:o_local], packed[o_local:o_touched]
+        jds.touched = packed[o_touched:o_touched + n_touched]
         return jds
 
     def _sort(self, rows: ConstraintRows, t: np.ndarray, sel: np.ndarray, real) -> None:

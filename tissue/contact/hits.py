@@ -81,7 +81,7 @@ class ReadOut:
 class HitBuffer:
     """Every body's detection output in one buffer, body after body: a row per sample, then one
     row where a soft launch leaves the room its triangle grid needed (gap[-1]), each row a slot
-    per obstacle and per other body: its gap in `gap` (1e300: none), a hit's other 10 numbers in
+    per obstacle and per other body: its gap in `gap` (`no_hit`: none), a hit's other 10 numbers in
     `array` (normal (3), closest point (3), weights on the other body's triangle (3) and its id
     (1), on an obstacle 0, 0, 0, -1; apart, so that finding the hits reads 8 bytes a slot, not
     the records' cache lines); and what identifies a hit in each row and slot, so that the hits of
@@ -93,7 +93,9 @@ class HitBuffer:
         slots = max(n_obstacles + (n_bodies - 1 if soft_soft else 0), 1)
         rows = [len(nodes) + 1 for nodes, _ in samples]
         start = np.r_[0, np.cumsum(rows)]
-        self.gap = np.full((start[-1], slots), 1e300, npr)     # (in float32: inf)
+        # No hit: 1e300, as the detection kernels write it (in float32 that is inf)
+        self.no_hit = np.dtype(npr).type(1e300 if np.dtype(npr) == np.float64 else np.inf)
+        self.gap = np.full((start[-1], slots), self.no_hit, npr)
         self.array = np.zeros((start[-1], slots, 10), npr)
         self.outs = [(self.gap[start[b]:start[b + 1]], self.array[start[b]:start[b + 1]]) for b in range(n_bodies)]
         self.body = np.repeat(np.arange(n_bodies, dtype=np.int32), rows)

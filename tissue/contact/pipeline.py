@@ -20,10 +20,9 @@ the device's pose opens the stage.
 
 Kernel launches per step (warped): one detection launch per body (plus one per further body pair
 with three or more bodies), one reading its hits out (tissue.contact.hits), one for the rows and
-their JDS where they are built anew
-(tissue.contact.row_writer; without attachments or jaws), one for W's factors and one for the
-correction per touched body, one for the Gauss-Seidel; everything between them is a few dozen
-numpy operations on arrays of contacts.
+their JDS where they are built anew (tissue.contact.row_writer; without attachments or jaws), one
+for W's factors and one for the correction per touched body, one for the Gauss-Seidel; everything
+between them is a few dozen numpy operations on arrays of contacts.
 Why factors: the contact points outnumber the nodes they move (the pressed liver: 147 contacts, 441
 rows, on 54 nodes), so the compliance among those nodes (162², 0.2 MB) is smaller than W (441²,
 1.6 MB), and forming W (the paper's kernel 2) is skipped.
@@ -115,10 +114,10 @@ class ContactResult:
     """What the last step's contact stage found and applied."""
 
     contacts: Contacts
+    # `rows` and the Delassus operator (metres per N·s; with warped compliance and no attachments
+    # its factors, FactoredDelassus, else an (n_rows, n_rows) array): views of buffers the step
+    # after next overwrites (copy them to keep them). `W` is the operator as an array.
     rows: ConstraintRows | None = None
-    # The Delassus operator (metres per N·s): with warped compliance and no attachments its factors
-    # (FactoredDelassus), else an (n_rows, n_rows) array: either way views of buffers the step
-    # after next overwrites (copy them to keep them). `W` is it as an array.
     delassus: np.ndarray | FactoredDelassus | None = None
     impulses: np.ndarray = field(default_factory=lambda: np.zeros(0))  # λ (n_rows,), N·s
     info: ContactInfo | None = None
@@ -238,7 +237,7 @@ class ContactStage:
         self._sample_offset = offsets([len(nodes) for nodes, _ in samples])
         self._held_samples = np.concatenate([(fixed[nodes] | (weights == 0)).all(axis=1)
                                              for fixed, (nodes, weights) in zip(self._fixed, samples)])
-        self._any_fixed = bool(self._held_samples.any())
+        self._any_held = bool(self._held_samples.any())
 
     def _follow_edits(self) -> None:
         """After topology edits (cutting): each edited body's contact surface is its model's
@@ -310,7 +309,7 @@ class ContactStage:
     def _drop_fixed(self, contacts: Contacts) -> Contacts:
         """Contacts that cannot move (a point on fixed nodes against a rigid or fixed triangle)
         carry no row. (contacts: detection's, whose points are their bodies' samples.)"""
-        if not self._any_fixed or not len(contacts):
+        if not self._any_held or not len(contacts):
             return contacts
         stuck = self._held_samples[self._sample_offset[contacts.body] + contacts.sample]
         if not stuck.any():
@@ -445,10 +444,8 @@ class ContactStage:
         launch (tissue.contact.row_writer) or, with attachments or jaws, in numpy."""
         given, attachments = self._given_friction(), tuple(self.attachments)
         kept = self._kept
-        states = self.detector.state                     # read by the detection's launches
         if kept is not None and kept.same(contacts, keys, given, attachments):
-            return kept, with_free_values(kept.rows, contacts, [x[:, :3] for x in states], [x[:, 3:] for x in states],
-                                          self.attachments, self.time)
+            return kept, self._with_free_values(kept.rows, contacts)
         mu = self._friction(contacts, given)
         warped = self.settings.compliance == "warped"
         if self.attachments or self.jaws:
@@ -457,14 +454,19 @@ class ContactStage:
                 rows = self._with_jaws(rows, contacts, mu == 0)
             touched = np.bincount(rows.body, minlength=len(self.compliance)).nonzero()[0].tolist()
             jds = {b: JaggedDiagonal(rows, b) for b in touched} if warped else None
-            rows = with_free_values(rows, contacts, [x[:, :3] for x in states], [x[:, 3:] for x in states],
-                                    self.attachments, self.time)
+            rows = self._with_free_values(rows, contacts)
         else:
             rows, jds = self._writer.write(contacts, mu == 0, self.detector.states, self.detector.state_offset)
             touched = list(jds)
             jds = jds if warped else None
         self._kept = _KeptRows(contacts, keys, given, attachments, rows, mu, touched, jds)
         return self._kept, rows
+
+    def _with_free_values(self, rows: ConstraintRows, contacts: Contacts) -> ConstraintRows:
+        """`rows` with δ_free, from the bodies' free and start positions the detection read."""
+        states = self.detector.state
+        return with_free_values(rows, contacts, [x[:, :3] for x in states], [x[:, 3:] for x in states],
+                                self.attachments, self.time)
 
     def _with_jaws(self, rows: ConstraintRows, contacts: Contacts, frictionless: np.ndarray) -> ConstraintRows:
         """The rows with their blocks on the jaws they touch: minus the row directions (a jaw's

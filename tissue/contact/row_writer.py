@@ -3,20 +3,19 @@ launch (tissue.launch): what `constraints.jacobian`, `with_free_values` and `Jag
 in numpy (their definitions: constraints.py), the same numbers bit for bit, in the same order.
 
 Contacts only: a stage with attachments or instruments' jaws builds its rows in numpy (their rows
-are few; `ContactStage._rows`). A launch costs a fixed few microseconds where the numpy
-builders cost some forty calls of a few each (the pressed liver's 150 contacts), and nothing of
-a step's rows can be kept from the step before while the bodies move.
+are few; `ContactStage._rows`). One launch instead of some forty numpy calls, and nothing of a
+step's rows can be kept from the step before while the bodies move.
 
 The launch reads the contacts from two buffers (`ints`: body, other, soft, frictionless, the
 carrier nodes, the other triangle; `reals`: the weights on both, the normal, the gap, the
 obstacle's motion): those detection's read-out wrote them into (tissue.contact.hits: its columns
 are these, and more), or filled by a handful of numpy copies for contacts from elsewhere; and the
 bodies' free and start positions from the detection's state (all bodies in one array,
-tissue.contact.detection). It writes, in buffers kept
-by capacity: the entries (block row, body, node) and their 3×3 values, δ_free, the frames and row
-directions, and per body its JDS: [perm | count | jd_ptr | node | local | touched] (int32, as
-`JaggedDiagonal.packed`), the entries' values in the backend's float type and their block rows.
-All in one serial loop: a few hundred contacts, where a parallel loop's dispatch would cost more.
+tissue.contact.detection). It writes, in buffers kept by capacity: the entries (block row, body,
+node) and their 3×3 values, δ_free, the frames and row directions, and per body its JDS: [perm |
+count | jd_ptr | node | local | touched] (int32, as `JaggedDiagonal.packed`), the entries' values
+in the backend's float type and their block rows. All in one serial loop: a few hundred
+contacts, where a parallel loop's dispatch would cost more.
 
 Every number is the numpy builders', bit for bit: Taichi's CPU code contracts no multiply-add and
 divides as numpy does (entry by entry), and the three-term sums are added in einsum's order
@@ -27,6 +26,7 @@ import numpy as np
 import taichi as ti
 
 from .. import backend
+from ..errors import TissueError
 from ..launch import replayed
 from .constraints import AXIS_CROSS, ConstraintRows, JaggedDiagonal
 from .contacts import Contacts
@@ -41,7 +41,7 @@ N_INTS, N_REALS = 10, 13
 PER_BODY = 6
 _AXIS_CROSS = AXIS_CROSS.tolist()      # (the kernel's constants)
 # A body's blocks in a contact's block row: its carrier nodes' (at most 3), or the other
-# triangle's (3); never both, no body being in contact with itself.
+# triangle's (3); never both: a soft contact of a body with itself is refused (RowWriter.write).
 MAX_BLOCKS = 3
 
 
@@ -175,7 +175,7 @@ def _body_jds(b, k, n_entries, start, value_start, sizes: ti.template(), block: 
     """Body b's JDS (JaggedDiagonal): its block rows sorted by their number of blocks, descending,
     stably (a counting sort: at most MAX_BLOCKS), and its entries jagged diagonal by jagged
     diagonal; packed from `start`, values and rows from `value_start`. Returns where the next
-    body's start."""
+    body's packed ints and values start."""
     for c in range(k):
         per_row[c, 0], per_row[c, 2] = 0, 0         # its blocks, and those placed so far
     nnz = 0
@@ -252,12 +252,16 @@ class RowWriter:
               ) -> tuple[ConstraintRows, dict[int, JaggedDiagonal]]:
         """The rows of `contacts` with δ_free, and the JDS of each body they touch (ordered by body).
         frictionless: (k,) bool; state: every body's free and start positions (n, 6), body b's
-        from row state_offset[b]."""
+        from row state_offset[b]. The rows' and the JDS' arrays are views of this writer's
+        buffers, which the second build after this one overwrites (copy them to keep them)."""
+        if contacts.soft.any() and (contacts.soft & (contacts.other == contacts.body)).any():
+            raise TissueError("row writer: a soft contact of a body with itself (more blocks than a "
+                              "block row holds)")
         self._which = 1 - self._which
         k = len(contacts)
-        args = self._arguments(k, state, state_offset)
+        args = self._arguments(k, state, len(state_offset) - 1)
         sizes, ints, reals = args[:3]
-        sizes[0] = k
+        sizes[0], sizes[2:] = k, state_offset
         read_out = contacts.read_out
         if read_out is not None and read_out.holds(contacts):      # (its columns are ours: tissue.contact.hits)
             ints, reals = read_out.ints, read_out.reals
@@ -279,23 +283,22 @@ class RowWriter:
         for b in range(len(state_offset) - 1):
             n_active, n_diagonals, nnz, n_touched, start, at = counts[1 + PER_BODY * b:1 + PER_BODY * (b + 1)]
             if nnz:
-                end = start + 2 * n_active + n_diagonals + 1 + 2 * nnz + n_touched
-                jds[b] = JaggedDiagonal.from_packed(packed[start:end], jds_value[at:at + nnz], jds_row[at:at + nnz],
-                                                    n_active, n_diagonals)
+                jds[b] = JaggedDiagonal.from_packed(packed[start:], jds_value[at:at + nnz], jds_row[at:at + nnz],
+                                                    n_active, n_diagonals, n_touched)
         return rows, jds
 
-    def _arguments(self, k: int, state: np.ndarray, state_offset: np.ndarray) -> tuple:
+    def _arguments(self, k: int, state: np.ndarray, n_bodies: int) -> tuple:
         """The launch's arguments in the current set: kept while they have room for k contacts
-        and read the same state (whole buffers, the same objects: the launch replays)."""
+        and read the same state for as many bodies (whole buffers, the same objects: the launch
+        replays). Their arrays grow by the storage's doubling (tissue.contact.storage), not here too."""
         args, room = self._args[self._which]
-        n_bodies = len(state_offset) - 1
         if args is not None and k <= room and args[3] is state and len(args[0]) == n_bodies + 3:
             return args
-        room = room if k <= room else max(k, 2 * room)
+        room = max(k, room)
         s, i32, f64 = self._sets[self._which], ti.i32, ti.f64
         e = 6 * room                          # entries: at most 3 on the point's body, 3 on the other's
         sizes = s.get("sizes", n_bodies + 3, i32)[:n_bodies + 3]
-        sizes[1], sizes[2:] = n_bodies, state_offset
+        sizes[1] = n_bodies
         args = (sizes, s.get("ints", room, i32, (N_INTS,)), s.get("reals", room, f64, (N_REALS,)), state,
                 s.get("block", e, i32), s.get("body", e, i32), s.get("node", e, i32), s.get("value", e, f64, (3, 3)),
                 s.get("q", 3 * room, f64), s.get("frames", room, f64, (3, 3)), s.get("directions", room, f64, (3, 3)),

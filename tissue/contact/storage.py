@@ -7,9 +7,10 @@ element type and dimension, they serve arrays of any size, so growing never comp
 arrays step after step, bundled in argpacks kept with them (`pack`), also let a launch be replayed
 (tissue.launch).
 
-Arrays are Taichi ndarrays, or with `host` on the CPU numpy arrays (`HostArray`): kernels read and
-write those in place, and one costs a small fraction of a Taichi ndarray's allocation, which
-matters to callers that make a storage per problem (the frictional contact solver's API).
+Arrays are Taichi ndarrays, or numpy arrays (`HostArray`): with `host` on the CPU, with `numpy` on
+every arch. Kernels read and write those in place (on a GPU, Taichi copies them there and back at
+each launch), and one costs a small fraction of a Taichi ndarray's allocation, which matters to
+callers that make a storage per problem (the frictional contact solver's API).
 """
 
 import numpy as np
@@ -20,7 +21,7 @@ from ..launch import host_view, kept_pack
 
 
 class HostArray(np.ndarray):
-    """A numpy array with the Taichi ndarray methods used here (CPU only: no copies)."""
+    """A numpy array with the Taichi ndarray methods used here (in place: no copies)."""
 
     def from_numpy(self, a):
         self[...] = a
