@@ -1855,3 +1855,31 @@ def test_liver_press_450_rows_no_step_at_the_cap(backend):
     rows, residual = np.array(history["rows"]), np.array(history["gs_residual"])
     above = np.flatnonzero(residual > 1e-6)
     assert rows.max() > 420 and not len(above), (rows.max(), above + 1, rows[above], residual[above])
+
+
+@pytest.mark.parametrize("compliance", ["warped", "exact"])
+def test_stage_follows_held_nodes_set_after_it_was_built(damped_block, compliance):
+    """solver.set_fixed after the contact stage was built: the model tells the stage
+    (BodyModel.subscribe), which rebuilds its held-node masks and its compliance (A₀⁻¹ depends on
+    the held nodes), so no contact is carried by held nodes alone and its next step equals that of
+    a stage built after the change, bit for bit."""
+    solver = reset(damped_block)
+    points = solver.fem.mesh.points
+    stage = on_plane(solver, friction=0.5, compliance=compliance)
+    for _ in range(3):
+        solver.step()
+        stage.step()
+    held = np.flatnonzero((points[:, 2] == 0) & (points[:, 0] < 0))      # half the resting bottom
+    try:
+        solver.set_fixed(held)
+        solver.step()
+        x, v = solver.positions(), solver.velocities()
+        followed = stage.step()
+        corrected = solver.positions()
+        solver.set_state(x, v)
+        fresh = on_plane(solver, friction=0.5, compliance=compliance).step()
+        assert len(followed.contacts) and not np.isin(followed.contacts.vertex, held).any()
+        np.testing.assert_array_equal(followed.impulses, fresh.impulses)
+        np.testing.assert_array_equal(corrected, solver.positions())
+    finally:
+        solver.set_fixed([])

@@ -200,7 +200,8 @@ class ContactStage:
         self._held_nodes()
         # A topology edit of a body's model (a cut) marks its contact data stale (_follow_edits).
         self._edited: set[int] = set()
-        self._listeners = [_Edited(self._edited, b) for b in range(len(self.bodies))]
+        self._held_changed: set[int] = set()    # and one whose held nodes changed (set_fixed)
+        self._listeners = [_Edited(self._edited, self._held_changed, b) for b in range(len(self.bodies))]
         for body, listener in zip(self.bodies, self._listeners):
             body.solver.model.subscribe(listener)
         self._pose_cache = {}
@@ -241,13 +242,16 @@ class ContactStage:
 
     def _follow_edits(self) -> None:
         """After topology edits (cutting): each edited body's contact surface is its model's
-        boundary now (the cut faces included), sampled anew; its compliance follows the model; the
-        held-node masks are rebuilt; and the warm start, keyed by sample ids that moved, is dropped.
-        Nothing of the previous rows is kept: the next detection builds them on the new surface."""
+        boundary now (the cut faces included), sampled anew; its compliance follows the model (as
+        it does after a change of held nodes alone, which A₀⁻¹ depends on); the held-node masks are
+        rebuilt; and the warm start, keyed by sample ids that moved, is dropped. Nothing of the
+        previous rows is kept: the next detection builds them on the new surface."""
         for b in sorted(self._edited):
             self.detector.set_surface(b, self.bodies[b].solver.model.boundary_faces())
+        for b in sorted(self._edited | self._held_changed):
             self.compliance[b].follow_edits()
         self._edited.clear()
+        self._held_changed.clear()
         self._held_nodes()
         self._forget_warm_start()
         self._kept, self._factors_before = None, {}
@@ -358,7 +362,7 @@ class ContactStage:
         default the stage's clock advanced by dt)."""
         s, h, stats = self.settings, self.dt, self.stats
         self.time = self.time + h if time is None else float(time)
-        if self._edited:
+        if self._edited or self._held_changed:
             with stats.stage("topology"):
                 self._follow_edits()
         if self.instruments:
@@ -654,10 +658,14 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 class _Edited:
-    """Marks body `body` stale in `edited` when its model's topology changes (BodyModel.subscribe)."""
+    """Marks body `body` stale in `edited` when its model's topology changes, and in `held` when
+    its held nodes do (BodyModel.subscribe)."""
 
-    def __init__(self, edited: set, body: int):
-        self.edited, self.body = edited, body
+    def __init__(self, edited: set, held: set, body: int):
+        self.edited, self.held, self.body = edited, held, body
 
     def topology_changed(self, edit) -> None:
         self.edited.add(self.body)
+
+    def held_changed(self) -> None:
+        self.held.add(self.body)

@@ -283,6 +283,9 @@ class BodyModel:
         held[held == HELD] = 0
         held[nodes[held[nodes] != DETACHED]] = HELD
         self._upload("held")
+        for structure in self._alive():
+            if hasattr(structure, "held_changed"):
+                structure.held_changed()
 
     @property
     def held_nodes(self) -> np.ndarray:
@@ -291,14 +294,17 @@ class BodyModel:
     # ---- topology edits ------------------------------------------------------------------------
 
     def subscribe(self, structure) -> None:
-        """Call `structure.topology_changed(edit)` after each element edit (held weakly)."""
+        """Call `structure.topology_changed(edit)` after each element edit, and
+        `structure.held_changed()`, where it has one, after `set_held` (held weakly)."""
         self._subscribers.append(weakref.ref(structure))
 
+    def _alive(self) -> list:
+        self._subscribers = [ref for ref in self._subscribers if ref() is not None]
+        return [ref() for ref in self._subscribers]
+
     def _notify(self, edit: Edit) -> None:
-        alive = [ref for ref in self._subscribers if ref() is not None]
-        self._subscribers = alive
-        for ref in alive:
-            ref().topology_changed(edit)
+        for structure in self._alive():
+            structure.topology_changed(edit)
 
     def add_nodes(self, points) -> np.ndarray:
         """Append nodes at these rest positions (k, 3); returns their ids. They stay detached
