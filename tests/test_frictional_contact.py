@@ -329,7 +329,11 @@ def test_anderson_over_the_contacts_that_carry_reactions(solve, mu):
     (listed in the problem's `carried`, in order): on a factored two-body problem where most
     contacts separate, warm-started on a few and reaching the others' reactions sweep by sweep,
     the solution is the plain sweeps' and, frictionless, the QP's (scipy, independent), to the
-    tolerance; the list holds, once each and ascending, every contact that ends with a reaction."""
+    tolerance; the list holds, once each and ascending, every contact that ends with a reaction.
+    The same solver then re-solves other q (as the haptic loop does): the history and the list a
+    solve leaves behind must not reach the next (a contact joining has its history zeroed, the
+    list is built anew at the launch's start), so sweeps and r equal a fresh solver's bit for bit
+    (test_renewed_solver_equals_fresh_solvers checks the same across problems)."""
     from tissue.contact import FrictionalContactSolver
 
     rng = np.random.default_rng(8)
@@ -354,6 +358,14 @@ def test_anderson_over_the_contacts_that_carry_reactions(solve, mu):
                                      method="L-BFGS-B", bounds=[(0, None)] * 80,
                                      options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10000})
         np.testing.assert_allclose(r[0::3], qp.x, atol=1e-6 * np.abs(qp.x).max())
+    for k in range(5):
+        q_next = q.copy()
+        q_next[0::3] = np.where(rng.random(80) < 0.25, -rng.random(80), 0.2 + rng.random(80))
+        again, info_a = fast.solve(q_next, 1e-11, 20000, r0=r0 if k % 2 else None)
+        fresh, info_f = FrictionalContactSolver(F, mu, "gauss_seidel", check=False).solve(
+            q_next, 1e-11, 20000, r0=r0 if k % 2 else None)
+        assert info_a.converged and (info_a.iterations, info_a.residual) == (info_f.iterations, info_f.residual), k
+        np.testing.assert_array_equal(again, fresh, err_msg=f"re-solve {k}")
 
 
 @pytest.mark.parametrize("method", ["gauss_seidel", "jacobi"])

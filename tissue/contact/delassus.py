@@ -46,8 +46,8 @@ class FactoredDelassus:
         return (3 * self.n, 3 * self.n)
 
     def scaled(self, factor: float, diagonal: np.ndarray | None = None) -> "FactoredDelassus":
-        """factor W, sharing the factors (its diagonal blocks `diagonal` before the factor, where
-        given: W's own with changes of the caller's)."""
+        """factor × W sharing the factors; its diagonal blocks (what the local solves read) are
+        `diagonal` × factor where given, else W's own × factor."""
         diagonal = self.diagonal if diagonal is None else diagonal
         return replace(self, scale=self.scale * factor, diagonal=diagonal * factor)
 

@@ -61,7 +61,7 @@ from ..errors import TissueError
 from . import gauss_seidel, jacobi, newton
 from .cone import natural_map_error2, natural_map_residual, project_cone
 from .delassus import FactoredDelassus
-from .layouts import CSR, DELASSUS, DENSE, FACTORED, IN_PLAY_MAX, PROBLEM
+from .layouts import CSR, DELASSUS, DENSE, FACTORED, IN_PLAY_MAX, PROBLEM, play_length
 from .storage import Storage
 
 METHODS = ("gauss_seidel", "jacobi", "newton", "auto")
@@ -241,7 +241,8 @@ class FrictionalContactSolver:
             hist, gram, carried = gauss_seidel.history_shape(window, q.shape[0])   # room for as many rows as q
             P = dict(q=q, mu=st.get("mu", room, real), r=st.get("r", 3 * room, real), u=st.get("u", 3 * room, real),
                      hist=st.get("hist", hist[0], real, hist[1:]), gram=st.get("gram", gram[0], real, gram[1:]),
-                     carried=st.get("carried", carried, ti.i32), stats=st.get("stats", 3, real), sizes=st.get("sizes", 5, ti.i32), reals=st.get("reals", 1, real))
+                     carried=st.get("carried", carried, ti.i32), stats=st.get("stats", 3, real),
+                     sizes=st.get("sizes", 5, ti.i32), reals=st.get("reals", 1, real))
             self._P = st.pack("problem", PROBLEM, **P)
             self._q, self._r, self._u = P["q"], P["r"], P["u"]
             size = None
@@ -272,7 +273,7 @@ class FrictionalContactSolver:
             dofs = max(1, int(W.y_offset[-1]))
             y, z = (st.get(name, dofs, real) for name in ("y", "z"))
             room = min(n, IN_PLAY_MAX)
-            active = st.get("active", n + 2 * room + 1, ti.i32)
+            active = st.get("active", play_length(n, room), ti.i32)
             dense = st.get("dense", 9 * room * room + 3 * dofs, real)
             dims, scale = [len(W.blocks), len(W.y_offset) - 1, room], float(W.scale)
         if (self.layout, dims, scale) != kept_W:
@@ -359,7 +360,7 @@ class FrictionalContactSolver:
         if not (self.layout == FACTORED and self._swept and self.storage.host):
             return None
         room = min(self.n, IN_PLAY_MAX)
-        slot = self.storage.get("active", self.n + 2 * room + 1, ti.i32)[:self.n]
+        slot = self.storage.get("active", play_length(self.n, room), ti.i32)[:self.n]
         a, b = slot[rows], slot[cols]
         if room == 0 or (a < 0).any() or (b < 0).any():
             return None

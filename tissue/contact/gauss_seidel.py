@@ -95,7 +95,7 @@ def _save(P: ti.template(), m, on):
 
 
 @ti.func
-def _accelerate(P: ti.template(), n, window, est, state):
+def _accelerate(P: ti.template(), window, est, state):
     """After a sweep whose start had the running error `est`: state = (Anderson steps since the
     last restart, restarts left, the previous start's error). A combined start worse than the
     previous one is rejected: back to the previous sweep's result (what plain Gauss-Seidel had),
@@ -188,6 +188,22 @@ def _anderson(P: ti.template(), k, m):
                     P.r[3 * i + a] = x[a]
 
 
+@ti.func
+def _carried_outside_play(W: ti.template(), P: ti.template()):
+    """FACTORED: some listed contact outside W among the contacts in play holds a reaction. A sweep
+    over every contact can give a contact a reaction that an Anderson step then projects to zero
+    (or a rejection undoes); apart (u_n > 0), it stays out when W among those in play grows, and a
+    later combination or rejection can give it a reaction again. The sweeps in play read r as
+    zero outside them, so the next sweep must search (_gather_play)."""
+    o_list, o_count = _carried_offsets(P)
+    outside = 0
+    for t in range(P.carried[o_count]):
+        i = P.carried[o_list + t]
+        if W.active[i] < 0 and vector_at(P.r, i).norm_sqr() != 0.0:
+            outside = 1
+    return outside
+
+
 # ----------------------------------------------------------------------------------------------
 # Gauss-Seidel: all sweeps in one launch, serial. The exact residual needs u = W r + q (one more
 # pass over W), so it is computed only when the sweep's running estimate says "converged" (and at
@@ -256,7 +272,8 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             # nodes (the pressed liver: ~15 of ~110 contacts in play, ~140 dofs). The same sweep,
             # rounding aside; the others, and every residual, read y.
             # Only a residual or a sweep over every contact can bring others into play: after a
-            # sweep over those in play, with Anderson's steps among them, the next needs no search.
+            # sweep over those in play, with Anderson's steps among them, the next needs no search
+            # (unless a step gives a listed contact outside them a reaction: _carried_outside_play).
             if play and not revisit:
                 formed = 1
                 if scan:
@@ -272,12 +289,12 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             if formed:
                 _, o_count, _ = _play_offsets(W, n)
                 visits = W.active[o_count]
-        for k in range(visits):
+        for visit in range(visits):
             # (formed: those in play alone, in ascending order, which the test below would visit)
-            i = k
+            i = visit
             if ti.static(layout == FACTORED):
                 if formed:
-                    i = W.active[_play_ascending(W, n) + k]
+                    i = W.active[_play_ascending(W, n) + visit]
             # Contact i solved with the others fixed; est gathers the error the old r_i had (a
             # cheap running estimate of the residual). A contact that carries nothing and was
             # apart (u_n > 0) when last seen is passed over until the next residual check, which
@@ -309,9 +326,12 @@ def _sweeps(layout: ti.template(), W: DELASSUS, P: PROBLEM):
             stale = 1
         it += 1
         if on > 0:
-            acc = _accelerate(P, n, window, est, ti.Vector([since, on, last]))
+            acc = _accelerate(P, window, est, ti.Vector([since, on, last]))
             since, on, last = ti.cast(acc[0], ti.i32), ti.cast(acc[1], ti.i32), acc[2]
             stale = 1           # (y is refreshed where it is read next)
+            if ti.static(layout == FACTORED):
+                if not scan:
+                    scan = _carried_outside_play(W, P)
     P.stats[0] = it
     P.stats[1] = err2
     P.stats[2] = stalled

@@ -4,7 +4,8 @@ Every kernel takes W as one DELASSUS argpack (the layout's arrays in slots a, b,
 diagonal blocks Wd, the factored layout's work vectors y, z and its scratch for W among the
 contacts in play (`active`, `dense`: see gauss_seidel), its sizes `dims` and its `scale`)
 and the problem as one PROBLEM argpack (q, mu, the reactions r and velocities u, Anderson's
-history and Gram matrix, the stats a launch reports back, and the launch's `sizes` and `reals`).
+history, Gram matrix and list of the contacts it keeps history for (`carried`), the stats a launch
+reports back, and the launch's `sizes` and `reals`).
 Slots by layout:
   DENSE     a = W (3n × 3n, row-major, flat)
   CSR       a = indptr, b = indices, c = blocks (3×3 block (i, indices[k]) of W in blocks[k])
@@ -40,14 +41,21 @@ PROBLEM = ti.types.argpack(q=ti.types.ndarray(), mu=ti.types.ndarray(), r=ti.typ
                            stats=ti.types.ndarray(), sizes=ti.types.ndarray(), reals=ti.types.ndarray())
 # W.dims (int): the factored layout's blocks, segments and room for contacts in play (gauss_seidel's
 # dense W among them: `active` holds each contact's slot there (n), the slots' contacts (room), their
-# count and the same contacts in ascending order (room); `dense` that W, 3 room × 3 room, then one
-# contact's row of P Q, 3 × the dofs). P.sizes (int): contacts, Anderson's
-# window, the sweep cap, the stall phase and its horizon (gauss_seidel.run). P.reals: the squared
-# tolerance.
+# count and the same contacts in ascending order (room: play_length); `dense` that W, 3 room × 3 room,
+# then one contact's row of P Q, 3 × the dofs). P.carried (int): the contacts that carried a reaction
+# in the launch, whose Anderson history is kept (marks, list, count: gauss_seidel's block comment
+# before _carried_offsets).
+# P.sizes (int): contacts, Anderson's window, the sweep cap, the stall phase and its horizon
+# (gauss_seidel.run). P.reals: the squared tolerance.
 NNZ, SEGMENTS, ROOM = 0, 1, 2
 IN_PLAY_MAX = 64      # the factored layout's sweeps form W among at most this many contacts in play
 CONTACTS, WINDOW, MAX_SWEEPS, STALL, HORIZON = 0, 1, 2, 3, 4
 TOL2 = 0
+
+
+def play_length(n: int, room: int) -> int:
+    """The length of W.active for n contacts and room for `room` in play (_play_offsets' layout)."""
+    return n + 2 * room + 1
 
 
 def array(shape, dtype):
