@@ -379,6 +379,17 @@ def test_kept_soft_grid_finds_every_contact_of_a_deforming_surface(backend):
     assert 0 < rebuilt.sum() < rebuilt.size and hits > 100, (rebuilt, hits)
 
 
+def test_detector_refuses_a_surface_naming_nodes_beyond_the_positions(backend):
+    """A face naming a node the body's positions lack would have the kernels read beyond them."""
+    from tissue.contact.detection import Detector
+
+    faces = [np.array([[0, 1, 2]]), np.array([[0, 1, 2], [1, 2, 5]])]
+    detector = Detector(faces)
+    with pytest.raises(TissueError, match="soft body 1: its surface names node 5, but it has 4 positions"):
+        detector.detect([np.eye(3), np.eye(4, 3)], 1e-3)
+    detector.detect([np.eye(3), np.eye(6, 3)], 1e-3)       # with positions for every node it detects
+
+
 def test_soft_detection_replays_by_identity(backend, monkeypatch):
     """From the third call on, the soft launches' arguments are the very objects of the call before
     (the grid's cell0 kept, not a new float each call), so their replays skip making a key."""
