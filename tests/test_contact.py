@@ -97,36 +97,57 @@ def test_primitive_distances_match_closed_forms(backend):
 
 def test_culled_primitives_give_the_nearest_within_alarm(backend):
     """The primitives' boxes and their groups' boxes (a rib's pieces), and the obstacle's grid of
-    primitives, skip only what is beyond the alarm distance: every point finds the nearest of 20
-    rib capsules and a sphere, as a search over all of them does, at an alarm distance within the
-    grid's margin (the grid's cells) and one beyond it (the groups)."""
+    primitives, skip only what is beyond reach: every point finds the nearest of 20 rib capsules
+    and a sphere, as a search over all of them does, on the ribs as they are and on a second copy
+    turned and shifted, within the alarm distance at its free position or, moving, at the step's
+    start. Without motion at 0.999 of the grid's margin and moving at 0.6 of it (alarm distance and
+    motion within the margin: the grid's cells), and moving at 1.5 of it (the groups)."""
+    import taichi as ti
+
     from scenes.liver_press import rib_segments
     from tissue.contact.detection import Detector
     from tissue.contact.geometry import primitive_bounds, primitive_grid
     from tissue.contact.obstacles import Capsule, RigidObstacle, Sphere
 
     ends = np.array(rib_segments()).reshape(-1, 2, 3)
-    ribs = RigidObstacle([Capsule(a, b, 0.006) for a, b in ends] + [Sphere((-0.04, 0.0, 0.01), 0.02)])
-    rows = primitive_bounds(ribs.bounding_boxes(), 0)
+    primitives = [Capsule(a, b, 0.006) for a, b in ends] + [Sphere((-0.04, 0.0, 0.01), 0.02)]
+    ribs = [RigidObstacle(primitives), RigidObstacle(primitives)]
+    rows = primitive_bounds(ribs[0].bounding_boxes(), 0)
     assert np.unique(rows[:, 12]).tolist() == [5, 10, 15, 20, 21]      # a group per rib, the sphere alone
+    centre, radii = ends.mean(axis=(0, 1)), np.r_[np.full(len(ends), 0.006), 0.02]
+    turn = np.linalg.qr(np.random.default_rng(4).standard_normal((3, 3)))[0]
+    turn *= np.linalg.det(turn)
+    poses = [(np.eye(3), np.zeros(3)), (turn, centre - turn @ centre + [0.01, -0.02, 0.01])]
 
-    def gaps(x):
+    def nearest(x):
+        """Gap and outward normal of the nearest primitive to each point x (the ribs' frame)."""
         a, b = ends[:, 0], ends[:, 1]
         s = np.clip(np.einsum("pki,ki->pk", x[:, None] - a, b - a) / np.einsum("ki,ki->k", b - a, b - a), 0, 1)
-        axis = a + s[..., None] * (b - a)
-        return np.c_[np.linalg.norm(x[:, None] - axis, axis=2) - 0.006,
-                     np.linalg.norm(x - [-0.04, 0.0, 0.01], axis=1) - 0.02]
+        centres = np.concatenate([a + s[..., None] * (b - a), np.tile([-0.04, 0.0, 0.01], (len(x), 1, 1))], axis=1)
+        d = x[:, None] - centres
+        g = np.linalg.norm(d, axis=2) - radii
+        k, i = g.argmin(axis=1), np.arange(len(x))
+        return g[i, k], d[i, k] / (g[i, k] + radii[k])[:, None]
 
     rng = np.random.default_rng(1)
-    p = rng.uniform([-0.15, -0.08, -0.03], [0.0, 0.11, 0.06], (3000, 3))
+    p = rng.uniform([-0.15, -0.08, -0.03], [0.0, 0.11, 0.06], (15000, 3))
     faces = np.arange(len(p)).reshape(-1, 3)
-    nearest = gaps(p).min(axis=1)
-    margin = primitive_grid(ribs.bounding_boxes(), 0, 0)[0][8]
-    for alarm in (0.004, 1.5 * margin):
-        assert (alarm <= margin) == (alarm == 0.004)
-        c = Detector([faces], [ribs], soft_soft=False).detect([p], alarm)
-        np.testing.assert_array_equal(np.sort(c.vertex), np.flatnonzero(nearest <= alarm))
-        np.testing.assert_allclose(c.gap, nearest[c.vertex], atol=1e-12)
+    margin, h = primitive_grid(ribs[0].bounding_boxes(), 0, 0)[0][8], 0.01
+    direction = rng.standard_normal((len(p), 3))
+    v = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(0, 0.39 * margin / h, (len(p), 1))
+    for alarm, moving in ((0.999 * margin, False), (0.6 * margin, True), (1.5 * margin, True)):
+        velocities = None
+        if moving:
+            velocities = [ti.ndarray(ti.types.vector(3, ti.f64), len(p))]
+            velocities[0].from_numpy(v)
+        c = Detector([faces], ribs, soft_soft=False).detect([p], alarm, poses, velocities=velocities,
+                                                             dt=h if moving else 0.0)
+        for o, (R, t) in enumerate(poses):
+            g, n = nearest((p - t) @ R)
+            start_gap = g - np.einsum("pi,pi->p", n, h * v @ R) if moving else g
+            mine = c.other == o
+            np.testing.assert_array_equal(np.sort(c.vertex[mine]), np.flatnonzero(np.minimum(g, start_gap) <= alarm))
+            np.testing.assert_allclose(c.gap[mine], g[c.vertex[mine]], atol=1e-12)
 
 
 def test_rigid_contact_within_alarm_at_the_step_start_is_found(backend):
@@ -321,12 +342,39 @@ def distances_to_triangles(points, triangles):
     return best
 
 
+def unlisted_pairs(detector, positions, alarm):
+    """(body, sample, other body's triangle) of every sample within `alarm` of a triangle (brute
+    force, all pairs) that the triangle grid the detector keeps for the other body does not list
+    in the sample's cell: what the grid must never miss, kept or rebuilt."""
+    import taichi as ti
+
+    missing = []
+    for b, grid in enumerate(detector._bodies):
+        dims, (*origin, cell) = grid.grid_i.to_numpy()[:3], grid.grid_f.to_numpy()[:4]
+        cells, nf = int(np.prod(dims)), len(detector.faces[b])
+        start = grid.start.to_numpy()[:cells + 1]
+        ids = detector.storage.get(b, 0, ti.i32).to_numpy()[:start[-1]]
+        listed = np.repeat(np.arange(cells), np.diff(start)) * nf + ids        # (cell, triangle) as one key
+        triangles = positions[b][detector.faces[b]]
+        for a in (a for a in range(len(positions)) if a != b):
+            nodes, weights = detector.samples[a]
+            points = np.einsum("sj,sji->si", weights, positions[a][nodes])
+            ijk = np.floor((points - origin) / cell).astype(int)
+            inside = np.all((0 <= ijk) & (ijk < dims), axis=1)
+            s, f = np.nonzero(distances_to_triangles(points, triangles) <= alarm)
+            cid = (ijk[s, 0] * dims[1] + ijk[s, 1]) * dims[2] + ijk[s, 2]
+            miss = ~(inside[s] & np.isin(cid * nf + f, listed))
+            missing += [(a, int(i), int(j)) for i, j in zip(s[miss], f[miss])]
+    return missing
+
+
 def test_kept_soft_grid_finds_every_contact_of_a_deforming_surface(backend):
     """The soft–soft grids kept between calls while the surfaces move within their skin: a box
     sunk into another's rippling top and sliding over it, by less than the skin per call and by
     several grid cells over the calls, is detected as brute force (all pairs) finds it, and bit
-    for bit as a fresh Detector (whose grids are built for the call) does. Kept grids and rebuilt
-    ones are both exercised."""
+    for bit as a fresh Detector (whose grids are built for the call) does, and each grid lists
+    every triangle within the alarm distance of a sample in the sample's cell. Kept grids and
+    rebuilt ones are both exercised."""
     from tissue.contact.detection import GRID_SKIN, Detector
     from tissue.mesh import boundary_faces, box
 
@@ -342,7 +390,10 @@ def test_kept_soft_grid_finds_every_contact_of_a_deforming_surface(backend):
         xb[top, 2] += 1e-3 * np.sin(40 * xb[top, 0] + 0.5 * call)
         positions = [xa, xb]
         c, fresh = kept.detect(positions, alarm), Detector(faces).detect(positions, alarm)
+        # grid_i[6]: whether the last launch against the body built its grid (with two bodies,
+        # the one launch against it in the call).
         rebuilt.append([int(body.grid_i.to_numpy()[6]) for body in kept._bodies])
+        assert unlisted_pairs(kept, positions, alarm) == [], call
         for name in ("body", "sample", "other", "triangle", "weights", "normal", "gap", "closest"):
             np.testing.assert_array_equal(getattr(c, name), getattr(fresh, name), err_msg=f"call {call}: {name}")
         for body in (0, 1):
@@ -358,9 +409,50 @@ def test_kept_soft_grid_finds_every_contact_of_a_deforming_surface(backend):
     assert 0 < rebuilt.sum() < rebuilt.size and hits > 100, (rebuilt, hits)
 
 
+def test_kept_soft_grid_is_rebuilt_once_a_node_moves_beyond_the_skin(backend):
+    """The kept grid's rule at its limit: a fine, tilted and jittered box (cells about three
+    margins, binned boxes ending anywhere in a cell) translated by 0.99 of the skin along an axis or
+    a diagonal keeps its grid, by 1.9 of it rebuilds it, and each grid kept lists, in the cell of
+    each point of a dense cloud about the box, every triangle within the alarm distance of the
+    point. (Kept up to twice the skin, the grid misses such triangles at 1.9: it was binned for the
+    margin, which the moved surface's alarm distance then exceeds.)"""
+    from tissue.contact.detection import GRID_SKIN, Detector
+    from tissue.mesh import boundary_faces, box
+
+    B = box((0.04, 0.04, 0.01), (8, 8, 2), origin=(-0.02, -0.02, -0.005))
+    alarm = 3e-3
+    skin = GRID_SKIN * alarm
+    rng = np.random.default_rng(3)
+    R = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    xb = B.points @ R.T + rng.uniform(-5e-4, 5e-4, B.points.shape)
+    centres = rng.uniform(xb.min(axis=0) - alarm, xb.max(axis=0) + alarm, (800, 3))
+    cloud = (centres[:, None] + rng.uniform(-1e-4, 1e-4, (800, 3, 3))).reshape(-1, 3)   # tiny triangles
+    faces = [np.arange(len(cloud)).reshape(-1, 3), boundary_faces(B.tets)]
+    detector, built = Detector(faces), []
+    for direction in ([1, 0, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [1, 1, -1], [-1, 1, 1]):
+        for fraction in (0.0, 0.99, 1.9):
+            positions = [cloud, xb + fraction * skin * np.array(direction)]
+            detector.detect(positions, alarm)
+            built.append(int(detector._bodies[1].grid_i.to_numpy()[6]))
+            if not built[-1]:                    # (a grid built for the call is the fresh one)
+                assert unlisted_pairs(detector, positions, alarm) == [], (direction, fraction)
+    assert built[1:] == [0, 1, 1] * 5 + [0, 1], built
+
+
+def test_detector_refuses_a_surface_naming_nodes_beyond_the_positions(backend):
+    """A face naming a node the body's positions lack would have the kernels read beyond them."""
+    from tissue.contact.detection import Detector
+
+    faces = [np.array([[0, 1, 2]]), np.array([[0, 1, 2], [1, 2, 5]])]
+    detector = Detector(faces)
+    with pytest.raises(TissueError, match="soft body 1: its surface names node 5, but it has 4 positions"):
+        detector.detect([np.eye(3), np.eye(4, 3)], 1e-3)
+    detector.detect([np.eye(3), np.eye(6, 3)], 1e-3)       # with positions for every node it detects
+
+
 def test_soft_detection_replays_by_identity(backend, monkeypatch):
     """From the third call on, the soft launches' arguments are the very objects of the call before
-    (the grid's cell0 kept, not a new float each call), so their replays skip making a key."""
+    (the grid's cell0 and margin kept, not new floats each call), so their replays skip making a key."""
     from tissue import launch
     from tissue.contact.detection import Detector
     from tissue.mesh import boundary_faces, box

@@ -46,6 +46,7 @@ import numpy as np
 import taichi as ti
 
 from .. import backend
+from ..errors import TissueError
 from ..launch import kept_pack, replayed
 from .contacts import Contacts, surface_samples
 from .constraints import offsets
@@ -56,7 +57,11 @@ from .storage import Storage
 
 GRID_MAX_CELLS = 1 << 18   # the soft–soft grid grows its cells rather than exceed this
 GRID_SKIN = 0.5     # the soft–soft grid is kept while the surface moves less than this times the alarm distance
-ROOM = 1e-5         # of the alarm distance: room for rounding in the soft–soft pruning (float32's too)
+# Room for rounding in the soft–soft pruning: ROOM of the alarm distance, or ROUNDING_ULPS units of
+# rounding of the coordinates' size where more (float32, or bodies far from the origin): the
+# distances it compares are rounded at the coordinates' scale, not the alarm distance's.
+ROOM = 1e-5
+ROUNDING_ULPS = 16
 SERIAL_BELOW_POINTS = 30_000      # contact points: below, the CPU runs the detection loops on one thread
 
 
@@ -123,12 +128,13 @@ def _detect_rigid(det: DETECT_RIGID, poses: ti.types.ndarray(), gap: ti.types.nd
             # Bounds farther than `reach` skip what they hold, which cannot be within it: the
             # obstacle's ball (radius < 0: unbounded, a plane) all its primitives, a group's box
             # (see primitive_bounds) the group's, a primitive's box the primitive; within its
-            # grid's margin (grow bounds reach), p's cell (see primitive_grid) lists all
-            # primitives that may be. Those tested are tested in order, so the nearest (ties: the
-            # first) is the one all of them would give. They are the primitives in turn from k to
+            # grid's margin (grow is reach but for rounding, which the grid's room for rounding
+            # covers), p's cell (see primitive_grid) lists all primitives that may be. Those
+            # tested are tested in order, so the nearest (ties: the first) is the one all of
+            # them would give. They are the primitives in turn from k to
             # stop: the obstacle's, a group skipped at its first where its box is beyond reach;
             # or, listed, those of p's cell (one loop: the closest-point code is compiled once).
-            k, stop, listed = det.prm_index[o], det.prm_index[o + 1], grow * (1.0 + 1e-9) <= det.bounds[o, 12]
+            k, stop, listed = det.prm_index[o], det.prm_index[o + 1], grow <= det.bounds[o, 12]
             if listed:
                 ijk = ti.cast(ti.floor((p - vector_at(det.bounds, o, 4)) / det.bounds[o, 7]), ti.i32)
                 dims = ti.cast(vector_at(det.bounds, o, 8), ti.i32)
@@ -181,6 +187,12 @@ def _vertex_normal(det: ti.template(), node):
     return nv / ti.max(nv.norm(), 1e-300)
 
 
+@ti.func
+def _with_room(det: ti.template(), alarm):
+    """The alarm distance and room for rounding (see ROOM) at the coordinates' size of the grid kept."""
+    return ti.max(alarm * (1.0 + ROOM), alarm + det.grid_f[5])
+
+
 @ti.kernel
 def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), state: ti.types.ndarray(),
                  cell0: float, alarm: float, margin: float, slot: ti.i32, h: float, copy_state: ti.i32,
@@ -192,7 +204,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
 
     The grid bins each triangle in the cells its box grown by `margin` (> alarm) meets, and keeps
     B's surface positions it was built from (`reference`): while no surface node has moved by
-    more than margin − alarm along any axis since (less ROOM × alarm for rounding), each triangle
+    more than margin − alarm along any axis since (less room for rounding: ROOM), each triangle
     lies within its binned box shrunk by alarm, so a sample within alarm of it still lies in a
     cell it is binned in, and the grid is kept (grid_i[5]: built whole; grid_i[6]: built at this
     launch). The sample's nearest triangle is the same in any cell that holds it (ties: the lowest
@@ -203,7 +215,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     ti.loop_config(serialize=serial)
     for _ in range(1):                          # serial: whether the grid holds; if not, its box, cell size and dims
         holds = det.grid_i[5] == 1
-        slack = det.grid_f[4] - alarm * (1.0 + ROOM)    # the margin it was built with, beyond the alarm distance
+        slack = det.grid_f[4] - _with_room(det, alarm)    # the margin it was built with, beyond the alarm distance
         m = 0
         while holds and m < det.surface.shape[0]:
             holds = (ti.abs(det.xb[det.surface[m]] - det.reference[m])).max() <= slack
@@ -216,6 +228,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
                 p = det.xb[det.surface[k]]
                 det.reference[k] = p
                 lo, hi = ti.min(lo, p), ti.max(hi, p)
+            det.grid_f[5] = det.grid_f[6] * ti.max(ti.abs(lo), ti.abs(hi)).max()    # see ROOM
             lo -= margin
             hi += margin
             cell = cell0
@@ -233,6 +246,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
     origin = ti.Vector([det.grid_f[0], det.grid_f[1], det.grid_f[2]])
     cell = det.grid_f[3]
     dims = ti.Vector([det.grid_i[0], det.grid_i[1], det.grid_i[2]])
+    reach = _with_room(det, alarm)
     ti.loop_config(serialize=serial)
     for c in range((det.grid_i[3] + 1) * det.grid_i[6]):
         det.start[c] = 0
@@ -276,7 +290,7 @@ def _detect_soft(det: DETECT, gap: ti.types.ndarray(), out: ti.types.ndarray(), 
                 a, b, c = det.xb[det.faces[f][0]], det.xb[det.faces[f][1]], det.xb[det.faces[f][2]]
                 # A triangle whose box is beyond the alarm distance (with room for rounding) is
                 # farther: it cannot be the nearest of a hit, and is not measured.
-                if within_corners(ti.min(a, b, c), ti.max(a, b, c), p, alarm * (1.0 + ROOM)):
+                if within_corners(ti.min(a, b, c), ti.max(a, b, c), p, reach):
                     w = closest_on_triangle(p, a, b, c)
                     q = w[0] * a + w[1] * b + w[2] * c
                     d = (p - q).norm()
@@ -344,18 +358,21 @@ class _Surface:
         # Faces around each node (CSR by node id, ascending face id), for the vertex normals.
         self.n_nodes = n_nodes
         corners = faces.reshape(-1)
-        offsets = np.zeros(max(n_nodes, int(corners.max(initial=-1)) + 1) + 1, np.int32)
-        np.cumsum(np.bincount(corners, minlength=len(offsets) - 1), out=offsets[1:])
+        face_offsets = np.zeros(n_nodes + 1, np.int32)
+        np.cumsum(np.bincount(corners, minlength=n_nodes), out=face_offsets[1:])
         self.nodes, self.weights = _array(nodes, ti.i32, 3), _array(weights.astype(npr), real, 3)
         self.faces = _array(faces, ti.i32, 3)
         self.surface = _array(surface, ti.i32)
-        self.vf_offsets = _array(offsets, ti.i32)
+        self.vf_offsets = _array(face_offsets, ti.i32)
         self.vf = _array((np.argsort(corners, kind="stable") // 3).astype(np.int32), ti.i32)
         # The grid of this body's triangles (built on the device when the one kept no longer
         # holds: _detect_soft), and the surface positions it was built from.
         self.start = ti.ndarray(ti.i32, GRID_MAX_CELLS + 1)
         self.cursor = ti.ndarray(ti.i32, GRID_MAX_CELLS)
-        self.grid_i, self.grid_f = _array(np.zeros(8, np.int32), ti.i32), ti.ndarray(real, 5)
+        # grid_f: origin (3), cell size, margin, room for rounding at the coordinates' size, and
+        # that room per unit of size (see ROOM).
+        self.grid_i = _array(np.zeros(8, np.int32), ti.i32)
+        self.grid_f = _array(np.r_[np.zeros(6), ROUNDING_ULPS * np.finfo(npr).eps].astype(npr), real)
         self.reference = ti.ndarray(ti.types.vector(3, real), max(len(surface), 1))
         self.cell = None                          # base cell size: set at the first detection
         self.cell0 = self.margin = None           # the launch's cell0 and margin (_run_soft)
@@ -403,22 +420,22 @@ class Detector:
         prims = [o.primitives for o in self.obstacles]
         counts = [len(p) for p in prims]
         self.has_primitives = sum(counts) > 0
-        offsets = np.r_[0, np.cumsum(counts)]
+        firsts = offsets(counts)             # each obstacle's first primitive, and the end
         self._prm = ti.ndarray(self.real, (max(1, sum(counts)), 16))
         self._prm_bounds = ti.ndarray(self.real, (max(1, sum(counts)), 13))
         if self.has_primitives:
             self._prm.from_numpy(np.concatenate(prims).astype(self._np))
             self._prm_bounds.from_numpy(np.concatenate(
-                [primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, offsets)]
+                [primitive_bounds(o.bounding_boxes(), start) for o, start in zip(self.obstacles, firsts)]
             ).astype(self._np))
         self._balls = np.array([o.bounding_ball() for o in self.obstacles]).reshape(-1, 4)
         # Per obstacle its ball and its grid (see primitive_grid; margin -1: none); the obstacles'
         # first primitives, then their grids' cell starts and primitive ids.
         bounds = np.zeros((max(1, len(self.obstacles)), 13))
         bounds[:len(self.obstacles), :4], bounds[:, 12] = self._balls, -1.0
-        index = [offsets]
+        index = [firsts]
         for o, obstacle in enumerate(self.obstacles):
-            grid = primitive_grid(obstacle.bounding_boxes(), offsets[o], sum(map(len, index)))
+            grid = primitive_grid(obstacle.bounding_boxes(), firsts[o], sum(map(len, index)))
             if grid is not None:
                 bounds[o, 4:], part = grid
                 index.append(part)
@@ -459,6 +476,10 @@ class Detector:
     def _setup(self, fields_):
         sizes = [f.shape[0] for f in fields_]
         if self._bodies is None or [b.n_nodes for b in self._bodies] != sizes:
+            for b, (faces, n) in enumerate(zip(self.faces, sizes)):
+                if faces.size and faces.max() >= n:       # (the kernels would read beyond the positions)
+                    raise TissueError(f"soft body {b}: its surface names node {faces.max()}, "
+                                      f"but it has {n} positions")
             self._hits = HitBuffer(self.samples, self.faces, len(self.obstacles), self.soft_soft, self._np)
             self._bodies = [_Surface(f, s, n, gap, out, self.real, self._np)
                             for f, s, n, (gap, out) in zip(self.faces, self.samples, sizes, self._hits.outs)]

@@ -167,15 +167,19 @@ def primitive_bounds(boxes: np.ndarray, start: int) -> np.ndarray:
 
 
 GRID_MIN_PRIMITIVES = 8        # an obstacle with fewer primitives has no grid: its groups do as well
-GRID_MAX_CELLS = 1 << 15
+# An obstacle's grid grows its cells rather than exceed this, so that its cell starts (int32, kept on
+# the device beside the primitives) stay within 128 KiB however far its primitives spread beyond
+# their size. (The soft–soft triangle grid's cap is another: detection.GRID_MAX_CELLS.)
+PRIMITIVE_GRID_MAX_CELLS = 1 << 15
 
 
 def primitive_grid(boxes: np.ndarray, first: int, at: int):
     """An obstacle's primitives binned in a uniform grid of its frame, for the samples within its
-    margin of them (one cell: a fifth of the median primitive's box, or more where the grid
-    would exceed GRID_MAX_CELLS): each cell lists, in ascending order, the primitives whose box
-    grown by the margin (with room for rounding) meets it, so a sample's cell holds every primitive
-    within the margin of it, and one outside the grid none.
+    margin of them. The margin is a fifth of the median primitive's box's largest side; a cell is
+    that long too, or longer where the grid would exceed PRIMITIVE_GRID_MAX_CELLS (the margin
+    stays). Each cell lists, in ascending order, the primitives whose box grown by the margin (with
+    room for rounding) meets it, so a sample's cell holds every primitive within the margin of it,
+    and one outside the grid none.
 
     Returns (meta, index): meta (9,) the grid's origin (3), cell size, dims (3), where its cell
     starts begin in the index array and the margin; index its part of that array (beginning at
@@ -188,7 +192,7 @@ def primitive_grid(boxes: np.ndarray, first: int, at: int):
     lo, hi = boxes[:, :3] - grown, boxes[:, 3:] + grown
     origin = lo.min(axis=0)
     cell = margin
-    while np.prod(np.floor((hi.max(axis=0) - origin) / cell) + 1) > GRID_MAX_CELLS:
+    while np.prod(np.floor((hi.max(axis=0) - origin) / cell) + 1) > PRIMITIVE_GRID_MAX_CELLS:
         cell *= 1.26
     dims = (np.floor((hi.max(axis=0) - origin) / cell) + 1).astype(np.int64)
     first_cell = np.clip(np.floor((lo - origin) / cell).astype(np.int64), 0, dims - 1)
