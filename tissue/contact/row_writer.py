@@ -290,11 +290,13 @@ class RowWriter:
     def _arguments(self, k: int, state: np.ndarray, n_bodies: int) -> tuple:
         """The launch's arguments in the current set: kept while they have room for k contacts
         and read the same state for as many bodies (whole buffers, the same objects: the launch
-        replays). Their arrays grow by the storage's doubling (tissue.contact.storage), not here too."""
+        replays). Rebuilt ones take room for twice the last (or k): each rebuild records the launch
+        anew, so a press whose contacts grow step by step rebuilds them a few times, not at each new
+        largest k (the storage's arrays may then double once more than k needs)."""
         args, room = self._args[self._which]
         if args is not None and k <= room and args[3] is state and len(args[0]) == n_bodies + 3:
             return args
-        room = max(k, room)
+        room = max(k, 2 * room)
         s, i32, f64 = self._sets[self._which], ti.i32, ti.f64
         e = 6 * room                          # entries: at most 3 on the point's body, 3 on the other's
         sizes = s.get("sizes", n_bodies + 3, i32)[:n_bodies + 3]
